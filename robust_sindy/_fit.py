@@ -1,0 +1,299 @@
+"""``fit``: validate once, dispatch to a solver, certify the answer."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, field
+
+import numpy as np
+
+from ._certificates import certify
+from ._validation import (
+    as_float_array,
+    check_coef,
+    check_int,
+    check_positive,
+    check_problem,
+    loss_delta,
+    per_column,
+)
+from .solvers import admm, reference, stls
+
+__all__ = ["METHODS", "ConvergenceWarning", "FitResult", "fit"]
+
+METHODS = ("admm", "cvxpy", "stls", "ols")
+
+
+class ConvergenceWarning(UserWarning):
+    """An iterative solver stopped before it could certify optimality."""
+
+
+@dataclass(repr=False)
+class FitResult:
+    """Outcome of :func:`fit`.
+
+    Attributes
+    ----------
+    coef : ndarray, shape (p, n) or (p,)
+        Coefficient matrix (the paper's Xi); (p,) when ``xdot`` was 1-D.
+    objective : ndarray, shape (n,)
+        ``P_k(coef)`` per target column (sum of Huber losses plus ``lam ||xi||_1``).
+    converged : bool
+        True only if every column was certified optimal (see ``column_converged``).
+    column_converged : ndarray of bool, shape (n,)
+    iterations : ndarray of int, shape (n,)
+        Solver iterations per column (ADMM iterations, interior-point iterations,
+        STLS sweeps).
+    kkt : ndarray, shape (n,)
+        Relative KKT violation of ``coef`` (see :func:`robust_sindy.kkt_violation`).
+    gap : ndarray, shape (n,)
+        Duality gap of ``coef`` (see :func:`robust_sindy.duality_gap`).
+    solve_time : float
+        Wall-clock seconds spent in the solver.
+    method, solver, loss : str
+    delta, lam : ndarray, shape (n,)
+        The values used per column (``delta`` is inf for the squared loss).
+    inliers : ndarray of bool, shape (m, n) or (m,), or None
+        For the Huber loss, ``|r| <= delta`` per sample and column.
+    dual : ndarray, shape (m, n)
+        ``psi_delta(r)``, the dual estimate; pass the result as ``warm_start`` to reuse it.
+    messages : list of str
+        The solver's word on each column.
+    info : dict
+        Solver-specific extras (e.g. ADMM Newton-finish steps).
+    """
+
+    coef: np.ndarray
+    objective: np.ndarray
+    converged: bool
+    column_converged: np.ndarray
+    iterations: np.ndarray
+    kkt: np.ndarray
+    gap: np.ndarray
+    solve_time: float
+    method: str
+    solver: str
+    loss: str
+    delta: np.ndarray
+    lam: np.ndarray
+    inliers: np.ndarray | None
+    dual: np.ndarray
+    messages: list[str]
+    info: dict = field(default_factory=dict)
+
+    def __repr__(self) -> str:
+        state = "converged" if self.converged else "NOT converged"
+        return (
+            f"FitResult(method={self.method!r}, solver={self.solver!r}, loss={self.loss!r}, "
+            f"{state}, coef shape={self.coef.shape}, iterations={self.iterations.tolist()}, "
+            f"max kkt={self.kkt.max():.2e}, solve_time={self.solve_time:.3g}s)"
+        )
+
+
+def _admm_options(options: dict, theta, y, one_d, loss) -> dict:
+    allowed = set(admm.DEFAULT_OPTIONS)
+    _reject_unknown(options, allowed, "admm")
+    opts = {**admm.DEFAULT_OPTIONS, **options}
+    for name in ("rho", "kappa", "eps_abs", "eps_rel", "tol", "gap_tol"):
+        if name in options:
+            check_positive(options[name], name)
+    if "alpha" in options:
+        check_positive(options["alpha"], "alpha", upper=2.0)
+    check_int(opts["max_iter"], "max_iter", 1)
+    check_int(opts["check_every"], "check_every", 1)
+    check_int(opts["newton_steps"], "newton_steps", 0)
+    for name in ("equilibrate", "adaptive_rho", "polish"):
+        if not isinstance(opts[name], bool):
+            raise ValueError(f"{name} must be True or False; got {opts[name]!r}")
+    opts["warm_start"] = _warm_start(opts["warm_start"], theta, y, one_d)
+    return opts
+
+
+def _warm_start(ws, theta, y, one_d):
+    if ws is None:
+        return None
+    p, (m, n) = theta.shape[1], y.shape
+    if isinstance(ws, FitResult):
+        coef = check_coef(ws.coef, p, n, one_d, "warm_start.coef")
+        dual = ws.dual
+    elif isinstance(ws, tuple):
+        if len(ws) != 2:
+            raise ValueError("warm_start must be a FitResult, coef, or a (coef, dual) pair")
+        coef = check_coef(ws[0], p, n, one_d, "warm_start coef")
+        dual = ws[1]
+    else:
+        coef, dual = check_coef(ws, p, n, one_d, "warm_start"), None
+    if dual is not None:
+        dual = as_float_array(dual, "warm_start dual", (1, 2)).reshape(m, -1)
+        if dual.shape != (m, n):
+            raise ValueError(f"warm_start dual must have shape {(m, n)}; got {dual.shape}")
+    return coef, dual
+
+
+def _reject_unknown(options: dict, allowed: set, method: str) -> None:
+    unknown = sorted(set(options) - allowed)
+    if unknown:
+        raise ValueError(
+            f"unknown option(s) {unknown} for method={method!r}; valid: {sorted(allowed)}"
+        )
+
+
+def fit(
+    theta,
+    xdot,
+    method: str = "admm",
+    delta=1.0,
+    lam=1.0,
+    loss: str = "huber",
+    solver: str | None = None,
+    **options,
+) -> FitResult:
+    """Fit the sparse coefficient matrix of ``xdot ~ theta @ coef`` column by column.
+
+    Each column ``k`` solves
+
+    .. math::
+
+        \\min_{\\xi} \\sum_i H_{\\delta_k}(\\dot X_{ik} - \\Theta_i \\xi)
+        + \\lambda_k \\|\\xi\\|_1
+
+    with the Huber loss ``H`` (``loss="huber"``) or ``a**2 / 2`` (``loss="squared"``,
+    the Lasso).
+
+    Parameters
+    ----------
+    theta : array_like, shape (m, p)
+        Library matrix: ``p`` candidate functions evaluated at ``m`` samples.
+    xdot : array_like, shape (m,) or (m, n)
+        Time derivatives (targets).
+    method : {"admm", "cvxpy", "stls", "ols"}
+        ``"admm"`` is the fast path; ``"cvxpy"`` the reference (Clarabel or OSQP);
+        ``"stls"`` and ``"ols"`` are the least-squares baselines (they ignore
+        ``delta``, ``lam`` and ``loss`` when fitting; the certificates still refer to
+        the problem those arguments define).
+    delta : float or array_like of shape (n,)
+        Huber threshold, > 0, one value or one per column.
+    lam : float or array_like of shape (n,)
+        L1 weight, >= 0, one value or one per column.
+    loss : {"huber", "squared"}
+    solver : {"clarabel", "osqp"}, optional
+        Only for ``method="cvxpy"`` (default ``"clarabel"``).
+    **options
+        Solver options.  ADMM: ``rho, kappa, alpha, equilibrate, adaptive_rho, polish,
+        max_iter, eps_abs, eps_rel, tol, gap_tol, check_every, newton_steps,
+        warm_start`` (see :func:`robust_sindy.solvers.solve_admm`;
+        ``robust_sindy.PAPER_ADMM_OPTIONS`` reproduces the paper's settings).
+        CVXPY: ``tol`` (certificate tolerance, default 1e-6), ``verbose`` and settings
+        passed to the solver.  STLS: ``threshold`` (0.05), ``max_sweeps`` (5000).
+
+    Returns
+    -------
+    FitResult
+
+    Raises
+    ------
+    ValueError
+        For bad input; the message names the argument.
+
+    Warns
+    -----
+    ConvergenceWarning
+        When a column could not be certified optimal; the best iterate is returned.
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> import robust_sindy as rs
+    >>> rng = np.random.default_rng(0)
+    >>> theta = rng.normal(size=(200, 5))
+    >>> xdot = theta @ np.array([1.5, 0.0, 0.0, -2.0, 0.0])
+    >>> xdot[::10] += 50.0                      # 10 % gross outliers
+    >>> res = rs.fit(theta, xdot, delta=1.0, lam=1.0)
+    >>> res.converged, bool(res.kkt.max() < 1e-8)
+    (True, True)
+    >>> np.round(res.coef, 2)
+    array([ 1.49,  0.  , -0.  , -1.99, -0.  ])
+    """
+    if method not in METHODS:
+        raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    theta, y, one_d = check_problem(theta, xdot)
+    n = y.shape[1]
+    delta_k = loss_delta(loss, delta, n)
+    lam_k = per_column(lam, "lam", n, positive=False)
+    if method != "cvxpy" and solver is not None:
+        raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
+
+    tol, gap_tol = np.inf, np.inf
+    t0 = time.perf_counter()
+    if method == "admm":
+        opts = _admm_options(options, theta, y, one_d, loss)
+        tol, gap_tol = opts["tol"], opts["gap_tol"]
+        out = admm.solve_admm(theta, y, delta_k, lam_k, **opts)
+        solver_name = "admm"
+    elif method == "cvxpy":
+        solver_name = "clarabel" if solver is None else solver
+        if solver_name not in reference.SOLVERS:
+            raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
+        tol = check_positive(options.pop("tol", 1e-6), "tol")
+        out = reference.solve_cvxpy(theta, y, delta_k, lam_k, solver=solver_name, **options)
+    elif method == "stls":
+        _reject_unknown(options, {"threshold", "max_sweeps"}, "stls")
+        threshold = options.get("threshold", 0.05)
+        if isinstance(threshold, bool) or not np.isfinite(threshold) or threshold < 0:
+            raise ValueError(f"threshold must be a finite number >= 0; got {threshold!r}")
+        sweeps = check_int(options.get("max_sweeps", 5000), "max_sweeps", 1)
+        out = stls.solve_stls(theta, y, threshold=float(threshold), max_sweeps=sweeps)
+        solver_name = "stls"
+    else:
+        _reject_unknown(options, set(), "ols")
+        out = stls.solve_ols(theta, y)
+        solver_name = "ols"
+    solve_time = time.perf_counter() - t0
+
+    cert = certify(theta, y, out.coef, delta_k, lam_k[None, :])
+    column_ok = out.converged & ((cert.kkt <= tol) | (cert.rel_gap <= gap_tol))
+    if not column_ok.all():
+        bad = np.flatnonzero(~column_ok).tolist()
+        if method == "admm":
+            advice = (
+                f"increase max_iter (now {opts['max_iter']}) or keep the default options "
+                "(equilibrate=True, adaptive_rho=True, polish=True)"
+            )
+        elif method == "cvxpy":
+            other = "osqp" if solver_name == "clarabel" else "clarabel"
+            advice = f"try solver={other!r} or method='admm'"
+        else:
+            advice = "increase max_sweeps"
+        warnings.warn(
+            f"{method} ({solver_name}) did not certify columns {bad} "
+            f"(relative KKT {np.array2string(cert.kkt[bad], precision=2)}); "
+            f"returning the last iterate. Try: {advice}.",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+
+    inliers = None
+    if loss == "huber":
+        inliers = np.abs(cert.residual) <= delta_k
+        if one_d:
+            inliers = inliers[:, 0]
+    return FitResult(
+        coef=out.coef[:, 0].copy() if one_d else out.coef,
+        objective=cert.objective,
+        converged=bool(column_ok.all()),
+        column_converged=column_ok,
+        iterations=out.iterations,
+        kkt=cert.kkt,
+        gap=cert.gap,
+        solve_time=solve_time,
+        method=method,
+        solver=solver_name,
+        loss=loss,
+        delta=delta_k,
+        lam=lam_k,
+        inliers=inliers,
+        dual=cert.psi,
+        messages=out.messages,
+        info=out.info,
+    )

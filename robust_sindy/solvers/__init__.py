@@ -1,0 +1,7 @@
+"""Solvers: each module solves the same objective (or a baseline) and returns a SolverOutput."""
+
+from .admm import PAPER_OPTIONS, solve_admm
+from .reference import solve_cvxpy
+from .stls import solve_ols, solve_stls
+
+__all__ = ["PAPER_OPTIONS", "solve_admm", "solve_cvxpy", "solve_ols", "solve_stls"]
