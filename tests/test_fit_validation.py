@@ -1,0 +1,77 @@
+"""Bad input raises ValueError naming the argument; nothing is coerced silently."""
+
+import numpy as np
+import pytest
+
+import robust_sindy as rs
+
+THETA = np.random.default_rng(0).normal(size=(20, 4))
+Y = np.random.default_rng(1).normal(size=(20, 2))
+
+
+@pytest.mark.parametrize(
+    ("kwargs", "match"),
+    [
+        (dict(theta=np.where(THETA > 1, np.nan, THETA)), "theta contains NaN"),
+        (dict(theta=np.where(THETA > 1, np.inf, THETA)), "theta contains NaN or inf"),
+        (dict(xdot=np.where(Y > 1, np.nan, Y)), "xdot contains NaN"),
+        (dict(theta=THETA[:, 0]), "theta must be 2-D"),
+        (dict(xdot=Y[:, :, None]), "xdot must be 1-D or 2-D"),
+        (dict(xdot=Y[:-1]), "xdot has 19 rows but theta has 20"),
+        (dict(theta=np.zeros((0, 4)), xdot=np.zeros((0, 2))), "theta has no rows"),
+        (dict(theta=np.zeros((20, 0))), "theta has no columns"),
+        (dict(theta=THETA.astype(complex)), "theta must hold real numbers"),
+        (dict(theta=THETA > 0), "theta must hold real numbers"),
+        (dict(theta="abc"), "theta must hold real numbers"),
+        (dict(delta=0.0), "delta must be > 0"),
+        (dict(delta=-1.0), "delta must be > 0"),
+        (dict(delta=np.nan), "delta contains NaN"),
+        (dict(delta=[1.0, 2.0, 3.0]), "delta has 3 values but xdot has 2 columns"),
+        (dict(lam=-0.1), "lam must be >= 0"),
+        (dict(lam=[1.0, -1.0]), "lam must be >= 0"),
+        (dict(lam="auto-ish"), "lam must be a number"),
+        (dict(method="newton"), "method must be one of"),
+        (dict(loss="l1"), "loss must be one of"),
+        (dict(solver="osqp"), "solver applies to method='cvxpy'"),
+        (dict(method="cvxpy", solver="mosek-like"), "solver must be one of"),
+        (dict(rho=0.0), "rho must be"),
+        (dict(alpha=2.5), "alpha must be"),
+        (dict(max_iter=0), "max_iter must be an integer"),
+        (dict(max_iter=10.5), "max_iter must be an integer"),
+        (dict(polish="yes"), "polish must be True or False"),
+        (dict(rho_typo=1.0), r"unknown option\(s\) \['rho_typo'\]"),
+        (dict(warm_start=np.zeros((3, 2))), "warm_start must have shape"),
+        (dict(method="stls", threshold=-1.0), "threshold must be"),
+        (dict(method="stls", max_sweeps=0), "max_sweeps must be"),
+        (dict(method="ols", rho=1.0), "unknown option"),
+    ],
+)
+def test_bad_input_raises_value_error_naming_the_argument(kwargs, match):
+    args = dict(theta=THETA, xdot=Y)
+    args.update(kwargs)
+    with pytest.raises(ValueError, match=match):
+        rs.fit(args.pop("theta"), args.pop("xdot"), **args)
+
+
+@pytest.mark.parametrize("func", [rs.objective, rs.kkt_violation, rs.duality_gap])
+def test_certificates_validate_coef(func):
+    with pytest.raises(ValueError, match="coef must be 2-D"):
+        func(THETA, Y, np.zeros(4))
+    with pytest.raises(ValueError, match=r"coef must have shape \(4, 2\)"):
+        func(THETA, Y, np.zeros((4, 3)))
+    with pytest.raises(ValueError, match="coef contains NaN"):
+        func(THETA, Y, np.full((4, 2), np.nan))
+
+
+def test_integer_input_is_accepted_exactly():
+    theta = np.arange(40).reshape(20, 2) % 7
+    res = rs.fit(theta, np.arange(20) % 5, lam=0.1)
+    assert res.coef.dtype == np.float64
+    assert res.converged
+
+
+def test_inputs_are_not_modified():
+    theta, y = THETA.copy(), Y.copy()
+    rs.fit(theta, y)
+    np.testing.assert_array_equal(theta, THETA)
+    np.testing.assert_array_equal(y, Y)
