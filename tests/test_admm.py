@@ -131,9 +131,7 @@ def test_warm_start_reuses_the_solution(lorenz2):
     assert warm.iterations.max() == 0  # certified by the finish before any iteration
     nearby = rs.fit(theta, y, lam=1.2, warm_start=cold)
     assert nearby.converged
-    np.testing.assert_allclose(
-        nearby.objective, rs.fit(theta, y, lam=1.2).objective, rtol=1e-10
-    )
+    np.testing.assert_allclose(nearby.objective, rs.fit(theta, y, lam=1.2).objective, rtol=1e-10)
     from_coef = rs.fit(theta, y, lam=1.0, warm_start=cold.coef)
     np.testing.assert_allclose(from_coef.coef, cold.coef, atol=1e-10)
 
