@@ -267,7 +267,7 @@ def fit(
             advice = "increase max_sweeps"
         warnings.warn(
             f"{method} ({solver_name}) did not certify columns {bad} "
-            f"(relative KKT {np.array2string(cert.kkt[bad], precision=2)}); "
+            f"(relative KKT {', '.join(f'{v:.1e}' for v in cert.kkt[bad])}); "
             f"returning the last iterate. Try: {advice}.",
             ConvergenceWarning,
             stacklevel=2,

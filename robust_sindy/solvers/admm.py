@@ -82,7 +82,7 @@ PAPER_OPTIONS = dict(
     gap_tol=1e-6,
 )
 
-_RHO_MIN, _RHO_MAX, _MU, _TAU = 1e-6, 1e6, 10.0, 2.0
+_RHO_MIN, _RHO_MAX, _MU, _TAU_MAX = 1e-10, 1e10, 10.0, 10.0
 _MAX_POLISH_INTERVAL = 100
 
 
@@ -95,15 +95,15 @@ def _objective(r, x, delta, lam):
 
 
 def _solve_sym(M: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve a small symmetric positive semidefinite system, least squares if singular."""
-    try:
-        c = scipy.linalg.cho_factor(M, check_finite=False)
-        x = scipy.linalg.cho_solve(c, b, check_finite=False)
-        if np.all(np.isfinite(x)):
-            return x
-    except np.linalg.LinAlgError:
-        pass
-    return np.linalg.lstsq(M, b, rcond=None)[0]
+    """Minimum-norm solution of a small symmetric PSD system.
+
+    Eigenvalues below ``1e-11`` of the largest are treated as zero: a Cholesky factor
+    of a numerically singular Gram matrix (duplicated library columns, too few inliers)
+    "succeeds" with a tiny pivot and returns a huge, meaningless step.
+    """
+    w, V = np.linalg.eigh(M)
+    keep = w > 1e-11 * max(w[-1], 0.0) if w.size else w.astype(bool)
+    return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
 
 
 def _slope(t, r, q, x, d, lam, delta):
@@ -261,6 +261,13 @@ def solve_admm(
     scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
     A = theta[:, nz] / scale
     lam_s = lam[nz] / scale[:, None]
+    # Exact per-column rescaling y/c, delta/c, lam/c (solution xi/c) with c = delta, so
+    # every column is solved in units of its Huber threshold (rms of y for the squared loss).
+    c = np.where(np.isfinite(delta), delta, np.sqrt(np.mean(y**2, axis=0)))
+    c = np.where(c > 0, c, 1.0)
+    y = y / c
+    delta = delta / c
+    lam_s = lam_s / c
     ps = A.shape[1]
     a_norms = _colnorm(A)
     G = A.T @ A
@@ -270,9 +277,9 @@ def solve_admm(
     rho_k = np.full(n, float(rho))
     if warm_start is not None:
         coef0, dual0 = warm_start
-        xi = coef0[nz] * scale[:, None]
+        xi = coef0[nz] * scale[:, None] / c
         r = y - A @ xi
-        psi0 = huber_psi(r, delta) if dual0 is None else dual0
+        psi0 = huber_psi(r, delta) if dual0 is None else dual0 / c
         ur = -psi0 / rho_k
         uz = -(A.T @ psi0) / (kappa * rho_k)
     else:
@@ -283,6 +290,7 @@ def solve_admm(
     z = xi.copy()
 
     out_x = np.zeros((ps, n))
+    final_rho = rho_k.copy()
     iterations = np.zeros(n, dtype=int)
     newton_total = np.zeros(n, dtype=int)
     converged = np.zeros(n, dtype=bool)
@@ -335,6 +343,7 @@ def solve_admm(
         done = np.zeros(n, dtype=bool)
     while True:
         if done.any():
+            final_rho[active[done]] = rho_act[done]
             keep = ~done
             active = active[keep]
             y_act, lam_act, delta_act = y_act[:, keep], lam_act[:, keep], delta_act[keep]
@@ -390,23 +399,26 @@ def solve_admm(
                 todo = np.intersect1d(todo, np.flatnonzero(passed))
             done |= finish(active, todo, z)
         if adaptive_rho and not done.all():
-            # Residual balancing (Boyd et al. 2011, sec. 3.4.1), per column.
-            factor_rho = np.where(
-                prim > _MU * dual, _TAU, np.where(dual > _MU * prim, 1.0 / _TAU, 1.0)
-            )
+            # Residual balancing (Boyd et al. 2011, sec. 3.4.1) per column, with the
+            # step sqrt(prim / dual) bounded by _TAU_MAX (Wohlberg 2017).
+            with np.errstate(divide="ignore", invalid="ignore"):
+                tau = np.clip(np.sqrt(prim / dual), 1.0 / _TAU_MAX, _TAU_MAX)
+            unbalanced = (prim > _MU * dual) | (dual > _MU * prim)
+            factor_rho = np.where(unbalanced & np.isfinite(tau), tau, 1.0)
             new_rho = np.clip(rho_act * factor_rho, _RHO_MIN, _RHO_MAX)
             ur *= rho_act / new_rho
             uz *= rho_act / new_rho
             rho_act = new_rho
 
+    final_rho[active] = rho_act
     for j, k in enumerate(active):  # unconverged: return the final sparse iterate
         out_x[:, k] = z[:, j]
     coef = np.zeros((p, n))
-    coef[nz] = out_x / scale[:, None]
+    coef[nz] = out_x * c / scale[:, None]
     return SolverOutput(
         coef=coef,
         iterations=iterations,
         converged=converged,
         messages=messages,
-        info={"newton_steps": newton_total},
+        info={"newton_steps": newton_total, "rho": final_rho},
     )
