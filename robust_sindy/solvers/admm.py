@@ -23,10 +23,12 @@ serves every column and every change of ``rho``.
 Speed-ups, all exact (the estimator does not change):
 
 * columns of ``Theta`` are equilibrated (``Theta D^-1``, ``D xi``, ``lam / d``);
-* ``rho`` adapts per column by balancing normalised residuals (OSQP's rule), with the
-  scaled duals rescaled and no refactorisation;
+* each column is solved in units of its Huber threshold (``y / delta``), and ``rho``
+  adapts per column by residual balancing with a bounded ``sqrt(primal / dual)`` step,
+  the scaled duals rescaled and no refactorisation;
 * over-relaxation ``alpha``;
-* an active-set (semismooth) Newton finish, tried on a doubling schedule: from the
+* an active-set (semismooth) Newton finish, tried at iterations 10, 20, 40, 80, then
+  every 100, and whenever the residual tests pass: from the
   current iterate take the inlier/outlier partition, the support and the signs, solve
   ``Theta_IS^T Theta_IS xi_S = Theta_IS^T y_I + delta Theta_OS^T s_O - lam_S sigma_S``,
   and safeguard with a line search on the true objective.  It terminates exactly
@@ -233,10 +235,10 @@ def solve_admm(
     equilibrate : bool
         Scale the columns of ``theta`` to unit norm (exact change of variables).
     adaptive_rho : bool
-        Balance the normalised primal and dual residuals by updating ``rho``.
+        Balance the primal and dual residuals of each column by updating its ``rho``.
     polish : bool
-        Try the active-set Newton finish on a doubling schedule and whenever the
-        residual tests pass.
+        Try the active-set Newton finish at iterations 10, 20, 40, 80, then every 100,
+        and whenever the residual tests pass.
     max_iter : int
         ADMM iteration limit per column.
     eps_abs, eps_rel : float
@@ -322,11 +324,13 @@ def solve_admm(
                 converged[k] = True
                 messages[k] = f"certified by the active-set finish after {steps} Newton steps"
                 done[j] = True
-            elif _objective(y_act[:, j] - A @ x, x, delta_act[j], lam_act[:, j]) < _objective(
-                y_act[:, j] - A @ z[:, j], z[:, j], delta_act[j], lam_act[:, j]
+                continue
+            rj = y_act[:, j] - A @ x
+            rz = y_act[:, j] - A @ z[:, j]
+            if _objective(rj, x, delta_act[j], lam_act[:, j]) < _objective(
+                rz, z[:, j], delta_act[j], lam_act[:, j]
             ):
                 # Restart ADMM from the better point with consistent duals.
-                rj = y_act[:, j] - A @ x
                 psi = huber_psi(rj, delta_act[j])
                 xi[:, j] = z[:, j] = x
                 r[:, j] = rj
