@@ -257,8 +257,9 @@ def fit(
         bad = np.flatnonzero(~column_ok).tolist()
         if method == "admm":
             advice = (
-                f"increase max_iter (now {opts['max_iter']}) or keep the default options "
-                "(equilibrate=True, adaptive_rho=True, polish=True)"
+                f"increase max_iter (now {opts['max_iter']}), start from another rho "
+                f"(now {opts['rho']}; e.g. 1e-4 or 10), or keep equilibrate, adaptive_rho "
+                "and polish on"
             )
         elif method == "cvxpy":
             other = "osqp" if solver_name == "clarabel" else "clarabel"
