@@ -5,7 +5,9 @@ column scales over six decades, a bias column, an exactly collinear column pair,
 Student-t (df = 2) noise, up to 30 % gross outliers, leverage outliers (whole rows
 scaled), target scales 1e-3..1e4, delta 1e-3..10 times the target scale, lam from 1e-6
 of lambda_max to above it, lam = 0.  Prints every column ADMM fails to certify and every
-disagreement with Clarabel beyond 1e-8 relative objective.
+disagreement with Clarabel beyond 1e-8 relative objective; for an uncertified
+problem it prints Clarabel's certificate beside ADMM's, the ratio delta / max|y| (near 0 the
+problem is a least-absolute-deviation fit) and the condition number of the scaled library.
 
 Run:  python validation/stress_crosscheck.py
 """
@@ -17,9 +19,9 @@ import numpy as np
 
 import robust_sindy as rs
 
-warnings.simplefilter("error", rs.ConvergenceWarning)
 rng = np.random.default_rng(123)
 fails = 0
+clarabel_uncertified = 0
 worst = 0
 tot_a = tot_c = 0
 for trial in range(120):
@@ -51,26 +53,29 @@ for trial in range(120):
     if rng.random() < 0.1:
         lam = 0.0 * lam
     t0 = time.perf_counter()
-    try:
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.ConvergenceWarning)
         a = rs.fit(th, y, delta=delta, lam=lam)
-    except rs.ConvergenceWarning as w:
-        fails += 1
-        print("FAIL", trial, m, p, n, str(w)[:150])
-        continue
-    ta = time.perf_counter() - t0
-    warnings.simplefilter("ignore")
-    c = rs.fit(th, y, method="cvxpy", delta=delta, lam=lam)
-    warnings.simplefilter("error", rs.ConvergenceWarning)
+        ta = time.perf_counter() - t0
+        c = rs.fit(th, y, method="cvxpy", delta=delta, lam=lam)
     rel = np.max((a.objective - c.objective) / np.maximum(np.abs(c.objective), 1e-300))
+    cond = np.linalg.cond(th / np.maximum(np.linalg.norm(th, axis=0), 1e-300))
+    if not a.converged:
+        fails += 1
+        clarabel_uncertified += bool(c.kkt.max() > 1e-9)
+        print(
+            f"UNCERTIFIED {trial:3d} m={m} p={p} n={n} admm kkt {a.kkt.max():.1e} "
+            f"clarabel kkt {c.kkt.max():.1e} rel obj (admm - clarabel) {rel:+.1e} "
+            f"delta/max|y| {delta / np.abs(y).max():.1e} cond {cond:.1e}"
+        )
+        continue
     worst = max(worst, rel)
     tot_a += ta
     tot_c += c.solve_time
     if rel > 1e-8 or a.kkt.max() > 1e-8:
         print("DISAGREE", trial, m, p, n, rel, a.kkt.max(), c.kkt.max(), c.messages)
 print(
-    "fails",
-    fails,
-    "worst rel (admm - clarabel)",
-    worst,
-    f"time admm {tot_a:.2f} clarabel {tot_c:.2f}",
+    f"ADMM certified {120 - fails}/120; worst rel objective (admm - clarabel) on those "
+    f"{worst:.1e}; time admm {tot_a:.2f} s, clarabel {tot_c:.2f} s. "
+    f"Clarabel also above KKT 1e-9 on {clarabel_uncertified}/{fails} uncertified problems."
 )
