@@ -261,6 +261,13 @@ def fit(
                 f"(now {opts['rho']}; e.g. 1e-4 or 10), or keep equilibrate, adaptive_rho "
                 "and polish on"
             )
+            ratio = delta_k[bad] / np.maximum(np.abs(y[:, bad]).max(axis=0), np.finfo(float).tiny)
+            if loss == "huber" and ratio.min() < 1e-4:
+                advice += (
+                    f"; delta is {ratio.min():.1e} of max|xdot|, which makes the problem a "
+                    "least-absolute-deviation fit, where ADMM converges slowly: "
+                    "try method='cvxpy' or a larger delta"
+                )
         elif method == "cvxpy":
             other = "osqp" if solver_name == "clarabel" else "clarabel"
             advice = f"try solver={other!r} or method='admm'"

@@ -165,3 +165,16 @@ def test_iteration_limit_returns_the_last_iterate_with_a_warning(lorenz2):
     assert not res.converged
     assert np.all(res.iterations == 3)
     assert np.all(np.isfinite(res.coef))
+
+
+def test_warning_names_the_least_absolute_deviation_regime():
+    rng = np.random.default_rng(7)
+    theta = rng.normal(size=(200, 5))
+    y = theta @ rng.normal(size=5) + rng.standard_t(2, size=200)
+    with pytest.warns(rs.ConvergenceWarning, match="least-absolute-deviation") as record:
+        res = rs.fit(theta, y, delta=1e-7, lam=0.1, max_iter=20, polish=False)
+    assert not res.converged
+    assert "method='cvxpy'" in str(record[0].message)
+    with pytest.warns(rs.ConvergenceWarning) as record:
+        rs.fit(theta, y, delta=1.0, lam=0.1, max_iter=3, polish=False)
+    assert "least-absolute-deviation" not in str(record[0].message)
