@@ -8,9 +8,12 @@ by a certified ADMM (the fast path) or a CVXPY reference; least-squares baseline
 (STLS, OLS) and the Lasso (``loss="squared"``) use the same entry point, :func:`fit`.
 """
 
+from . import differentiation, library, metrics, noise, selection, simulate, systems
 from ._certificates import duality_gap, kkt_violation, objective
 from ._fit import METHODS, ConvergenceWarning, FitResult, fit
 from ._losses import huber, huber_prox, huber_psi, soft_threshold
+from .library import ConcatLibrary, CustomLibrary, PolynomialLibrary
+from .model import HuberSINDy
 from .solvers.admm import PAPER_OPTIONS as PAPER_ADMM_OPTIONS
 
 __version__ = "0.1.0"
@@ -18,14 +21,25 @@ __version__ = "0.1.0"
 __all__ = [
     "METHODS",
     "PAPER_ADMM_OPTIONS",
+    "ConcatLibrary",
     "ConvergenceWarning",
+    "CustomLibrary",
     "FitResult",
+    "HuberSINDy",
+    "PolynomialLibrary",
+    "differentiation",
     "duality_gap",
     "fit",
     "huber",
     "huber_prox",
     "huber_psi",
     "kkt_violation",
+    "library",
+    "metrics",
+    "noise",
     "objective",
+    "selection",
+    "simulate",
     "soft_threshold",
+    "systems",
 ]

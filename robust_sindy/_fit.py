@@ -172,8 +172,9 @@ def fit(
         ``"stls"`` and ``"ols"`` are the least-squares baselines (they ignore
         ``delta``, ``lam`` and ``loss`` when fitting; the certificates still refer to
         the problem those arguments define).
-    delta : float or array_like of shape (n,)
-        Huber threshold, > 0, one value or one per column.
+    delta : float, array_like of shape (n,), or "auto"
+        Huber threshold, > 0, one value or one per column; ``"auto"`` chooses it per
+        column by :func:`robust_sindy.selection.auto_delta` (reported in ``delta``).
     lam : float or array_like of shape (n,)
         L1 weight, >= 0, one value or one per column.
     loss : {"huber", "squared"}
@@ -219,6 +220,12 @@ def fit(
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
     theta, y, one_d = check_problem(theta, xdot)
     n = y.shape[1]
+    if isinstance(delta, str) and delta == "auto":
+        if loss != "huber":
+            raise ValueError("delta='auto' applies to loss='huber' only")
+        from .selection import auto_delta  # selection builds on fit
+
+        delta = np.atleast_1d(auto_delta(theta, y))
     delta_k = loss_delta(loss, delta, n)
     lam_k = per_column(lam, "lam", n, positive=False)
     if method != "cvxpy" and solver is not None:

@@ -4,8 +4,9 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
+from robust_sindy.selection import lambda_max
 
-from .conftest import lambda_max, lorenz_library, random_problem
+from .conftest import lorenz_library, random_problem
 
 RTOL_OBJ = 1e-8
 

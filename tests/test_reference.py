@@ -2,8 +2,9 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
+from robust_sindy.selection import lambda_max
 
-from .conftest import lambda_max, random_problem
+from .conftest import random_problem
 
 
 def test_clarabel_and_osqp_agree():

@@ -1,6 +1,6 @@
 """Side-by-side check of the fast path against the reference solvers on the Lorenz problem.
 
-Set-up of SPEC section 6: Lorenz (sigma 10, rho 28, beta 8/3) from x0 = [0, 1, 20],
+The paper's set-up: Lorenz (sigma 10, rho 28, beta 8/3) from x0 = [0, 1, 20],
 RK4 with step 0.01 s for 10 s (m = 1001), degree-2 library built from states with
 20 % of the rows contaminated (sigma 0.5; 1e-3 elsewhere), exact derivatives;
 delta = 1, lam = 1.  For every solver: median time over repeats after a warm-up,

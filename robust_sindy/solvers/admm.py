@@ -45,7 +45,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from .._certificates import certify, kkt_from_gradient
+from .._certificates import certify, kkt_from_gradient, kkt_psi_scale
 from .._losses import huber, huber_prox, huber_psi, soft_threshold
 from ._base import SolverOutput
 
@@ -153,12 +153,12 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
     free = lam == 0
     T = 1.0 / col_norms**2
     r = y - A @ x
+    psi_floor = kkt_psi_scale(np.zeros(1), y[:, None], np.array([delta]))
     for step in range(max_steps + 1):
         psi = huber_psi(r, delta)
         g = A.T @ psi
-        kkt = kkt_from_gradient(
-            x[:, None], g[:, None], lam[:, None], col_norms, np.array([np.linalg.norm(psi)])
-        )[0]
+        psi_scale = np.maximum(np.linalg.norm(psi), psi_floor)
+        kkt = kkt_from_gradient(x[:, None], g[:, None], lam[:, None], col_norms, psi_scale)[0]
         if kkt <= tol:
             return x, True, step
         if step == max_steps:

@@ -3,7 +3,7 @@
 STLS (Brunton, Proctor & Kutz 2016) alternates a least-squares fit on the current
 support with zeroing every coefficient whose magnitude is below ``threshold``, until
 the support stops changing.  OLS is the unthresholded least-squares fit, which is what
-the paper's Lorenz "conventional" column looks like (SPEC erratum E9).
+the paper's Lorenz "conventional" column looks like (README, erratum E9).
 """
 
 from __future__ import annotations

@@ -1,0 +1,394 @@
+"""HuberSINDy: the estimator users fit to time series.
+
+From states (and optional controls) sampled in time it builds the library, obtains the
+derivatives (given, or by numerical differentiation), fits the coefficients with the
+Huber loss and an L1 penalty (:func:`robust_sindy.fit`), optionally thresholds them and
+refits the kept terms without penalty, and then prints, predicts and simulates the
+identified equations.
+"""
+
+from __future__ import annotations
+
+import warnings
+from collections.abc import Callable
+
+import numpy as np
+import scipy.integrate
+from sklearn.base import BaseEstimator, clone
+
+from ._fit import METHODS, fit
+from ._validation import as_float_array
+from .differentiation import finite_difference, savgol_derivative
+from .library import BaseLibrary, PolynomialLibrary
+from .selection import auto_delta
+from .simulate import check_time, input_function
+
+__all__ = ["HuberSINDy"]
+
+_DIFFERENTIATION = {"finite_difference": finite_difference, "savgol": savgol_derivative}
+
+
+def _as_list(value, name: str, multiple: bool):
+    if value is None:
+        return None
+    if multiple:
+        if not isinstance(value, (list, tuple)):
+            raise ValueError(f"{name} must be a list with one array per trajectory, like x")
+        return list(value)
+    return [value]
+
+
+class HuberSINDy(BaseEstimator):
+    """Sparse identification of nonlinear dynamics with the Huber loss.
+
+    Each equation ``k`` solves ``min_xi sum_i H_delta(xdot_ik - Theta_i xi) + lam
+    ||xi||_1`` (:func:`robust_sindy.fit`), optionally followed by a hard threshold and a
+    debiased refit (Huber, ``lam = 0``) on the kept terms.
+
+    Parameters
+    ----------
+    library : BaseLibrary, optional
+        Candidate functions of the states then the controls (default: polynomials of
+        degree 2).  It is cloned and fitted; the fitted copy is ``library_``.
+    delta : float, array_like (n,) or "auto"
+        Huber threshold per equation; ``"auto"`` applies
+        :func:`robust_sindy.selection.auto_delta` to the library and derivatives.
+    lam : float or array_like (n,)
+        L1 weight per equation.
+    method : {"admm", "cvxpy", "stls", "ols"}
+        Solver passed to :func:`robust_sindy.fit`.
+    threshold : float, optional
+        After the fit, set coefficients with ``|xi| < threshold`` to zero.
+    refit : bool
+        Refit each equation on its nonzero terms with ``lam = 0`` (Huber loss, same
+        ``delta``): removes the shrinkage of the L1 penalty.
+    differentiation : {"finite_difference", "savgol"} or callable
+        How derivatives are obtained when ``x_dot`` is not given; a callable receives
+        ``(x, t)`` and returns an array shaped like ``x``.
+    solver : str, optional
+        For ``method="cvxpy"``: ``"clarabel"`` or ``"osqp"``.
+    solver_options : dict, optional
+        Keyword options of :func:`robust_sindy.fit` (``max_iter``, ``tol``, ...).
+
+    Attributes
+    ----------
+    coef_ : ndarray, shape (n_targets, n_features)
+        Identified coefficients (rows: equations; the transpose of :func:`fit`'s Xi).
+    library_ : BaseLibrary
+        The fitted library; ``feature_names_`` are its input names (states, controls).
+    delta_ : ndarray (n_targets,)
+        The Huber thresholds used (chosen ones for ``delta="auto"``).
+    outliers_ : ndarray of bool, shape (n_samples, n_targets)
+        Whether the fitted residual of a sample exceeded ``delta`` (samples of all
+        trajectories stacked in order).
+    result_ : FitResult
+        The penalised fit (before threshold and refit).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from robust_sindy import HuberSINDy
+    >>> from robust_sindy.systems import Lorenz
+    >>> data = Lorenz().generate(t_end=5.0)
+    >>> model = HuberSINDy(threshold=0.05, refit=True)
+    >>> model = model.fit(data.x, data.t, x_dot=data.x_dot, feature_names=["x", "y", "z"])
+    >>> model.print()
+    (x)' = -10.000 x + 10.000 y
+    (y)' = 28.000 x - 1.000 y - 1.000 x*z
+    (z)' = -2.667 z + 1.000 x*y
+    """
+
+    def __init__(
+        self,
+        library: BaseLibrary | None = None,
+        delta=1.0,
+        lam=1.0,
+        method: str = "admm",
+        threshold: float | None = None,
+        refit: bool = False,
+        differentiation: str | Callable = "finite_difference",
+        solver: str | None = None,
+        solver_options: dict | None = None,
+    ):
+        self.library = library
+        self.delta = delta
+        self.lam = lam
+        self.method = method
+        self.threshold = threshold
+        self.refit = refit
+        self.differentiation = differentiation
+        self.solver = solver
+        self.solver_options = solver_options
+
+    # ------------------------------------------------------------------ data handling
+    def _trajectories(self, x, t, x_dot, u, *, need_t: bool):
+        multiple = isinstance(x, (list, tuple))
+        xs = [as_float_array(a, "x", (1, 2)) for a in _as_list(x, "x", multiple)]
+        xs = [a[:, None] if a.ndim == 1 else a for a in xs]
+        if multiple and not xs:
+            raise ValueError("x is an empty list: give at least one trajectory")
+        n = xs[0].shape[1]
+        for a in xs:
+            if a.shape[1] != n:
+                raise ValueError("x: every trajectory must have the same number of states")
+        us = _as_list(u, "u", multiple)
+        if us is not None:
+            if len(us) != len(xs):
+                raise ValueError(f"u has {len(us)} trajectories but x has {len(xs)}")
+            us = [as_float_array(a, "u", (1, 2)) for a in us]
+            us = [a[:, None] if a.ndim == 1 else a for a in us]
+            for a, b in zip(us, xs, strict=True):
+                if a.shape[0] != b.shape[0]:
+                    raise ValueError(f"u has {a.shape[0]} samples but x has {b.shape[0]}")
+        ds = _as_list(x_dot, "x_dot", multiple)
+        if ds is not None:
+            if len(ds) != len(xs):
+                raise ValueError(f"x_dot has {len(ds)} trajectories but x has {len(xs)}")
+            ds = [as_float_array(a, "x_dot", (1, 2)) for a in ds]
+            ds = [a[:, None] if a.ndim == 1 else a for a in ds]
+            for a, b in zip(ds, xs, strict=True):
+                if a.shape != b.shape:
+                    raise ValueError(f"x_dot has shape {a.shape} but x has shape {b.shape}")
+        ts = None
+        if need_t or ds is None:
+            ts = self._times(t, xs, multiple)
+        return xs, ts, ds, us
+
+    @staticmethod
+    def _times(t, xs, multiple):
+        if t is None:
+            raise ValueError("t is required (a time step or the sample times)")
+        if np.ndim(t) == 0 and not isinstance(t, (list, tuple)):
+            dt = as_float_array(t, "t", (0,))
+            if dt <= 0:
+                raise ValueError(f"t as a time step must be > 0; got {float(dt)}")
+            return [float(dt) * np.arange(a.shape[0]) for a in xs]
+        tl = _as_list(t, "t", multiple)
+        if len(tl) != len(xs):
+            raise ValueError(f"t has {len(tl)} trajectories but x has {len(xs)}")
+        out = []
+        for ti, a in zip(tl, xs, strict=True):
+            ti = check_time(ti, "t", min_length=1)
+            if ti.size != a.shape[0]:
+                raise ValueError(f"t has {ti.size} time points but x has {a.shape[0]} samples")
+            out.append(ti)
+        return out
+
+    def _inputs(self, x, u) -> np.ndarray:
+        q = getattr(self, "n_control_features_", 0)
+        if u is None:
+            if q:
+                raise ValueError(f"u is required: the model was fitted with {q} controls")
+            return x
+        if u.shape[1] != q:
+            raise ValueError(f"u has {u.shape[1]} columns but the model was fitted with {q}")
+        return np.hstack([x, u])
+
+    def _differentiate(self, x, t):
+        how = self.differentiation
+        if callable(how):
+            out = as_float_array(how(x, t), "differentiation output", (2,))
+            if out.shape != x.shape:
+                raise ValueError(f"differentiation returned shape {out.shape}; expected {x.shape}")
+            return out
+        if how not in _DIFFERENTIATION:
+            raise ValueError(
+                f"differentiation must be one of {tuple(_DIFFERENTIATION)} or a callable; "
+                f"got {how!r}"
+            )
+        return _DIFFERENTIATION[how](x, t)
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, x, t=None, x_dot=None, u=None, feature_names=None) -> HuberSINDy:
+        """Identify the equations from one trajectory or a list of trajectories.
+
+        Parameters
+        ----------
+        x : array_like (m, n), or a list of them
+            Measured states.
+        t : float, array_like (m,), or a list of arrays
+            Time step or sample times (strictly increasing); needed unless ``x_dot``
+            is given.
+        x_dot : array_like like ``x``, optional
+            Measured derivatives; computed by ``differentiation`` when omitted.
+        u : array_like (m, q), or a list of them, optional
+            Control inputs (noise-free, sampled with ``x``).
+        feature_names : sequence of str, optional
+            Names of the states then the controls (default ``x0, x1, ..., u0, ...``).
+        """
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
+        xs, ts, ds, us = self._trajectories(x, t, x_dot, u, need_t=False)
+        n = xs[0].shape[1]
+        q = 0 if us is None else us[0].shape[1]
+        if us is not None and any(a.shape[1] != q for a in us):
+            raise ValueError("u: every trajectory must have the same number of controls")
+        if feature_names is None:
+            feature_names = [f"x{i}" for i in range(n)] + [f"u{i}" for i in range(q)]
+        feature_names = [str(s) for s in feature_names]
+        if len(feature_names) != n + q:
+            raise ValueError(
+                f"feature_names has {len(feature_names)} names but there are {n} states "
+                f"and {q} controls: give one name per state, then per control"
+            )
+        if ds is None:
+            ds = [self._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
+        self.n_control_features_ = q
+        self.feature_names_ = feature_names
+        z = np.vstack([self._inputs(a, None if us is None else b) for a, b in _pairs(xs, us)])
+        self.library_ = clone(self.library) if self.library is not None else PolynomialLibrary()
+        theta = self.library_.fit_transform(z, input_names=feature_names)
+        y = np.vstack(ds)
+
+        options = dict(self.solver_options or {})
+        delta = auto_delta(theta, y) if _is_auto(self.delta) else self.delta
+        res = fit(theta, y, self.method, delta, self.lam, solver=self.solver, **options)
+        coef = res.coef.copy()
+        self.result_ = res
+        self.delta_ = res.delta
+        if self.threshold is not None:
+            if not np.isfinite(self.threshold) or self.threshold < 0:
+                raise ValueError(f"threshold must be a finite number >= 0; got {self.threshold}")
+            coef[np.abs(coef) < self.threshold] = 0.0
+        if self.refit:
+            coef = self._refit(theta, y, coef, options)
+        self.coef_ = coef.T
+        self.outliers_ = np.abs(y - theta @ coef) > self.delta_
+        self._check_conditioning(theta)
+        return self
+
+    def _refit(self, theta, y, coef, options):
+        out = np.zeros_like(coef)
+        method = self.method if self.method in ("admm", "cvxpy") else "admm"
+        for k in range(y.shape[1]):
+            keep = coef[:, k] != 0
+            if keep.any():
+                r = fit(
+                    theta[:, keep],
+                    y[:, k],
+                    method,
+                    self.delta_[k],
+                    0.0,
+                    solver=self.solver if method == "cvxpy" else None,
+                    **options,
+                )
+                out[keep, k] = r.coef
+        return out
+
+    def _check_conditioning(self, theta):
+        for k in range(self.coef_.shape[0]):
+            keep = self.coef_[k] != 0
+            if keep.sum() < 2:
+                continue
+            a = theta[:, keep] / np.linalg.norm(theta[:, keep], axis=0)
+            cond = np.linalg.cond(a)
+            if cond > 1e6:
+                names = [f for f, s in zip(self.get_feature_names(), keep, strict=True) if s]
+                warnings.warn(
+                    f"equation {k}: the selected terms {names} are nearly collinear on this "
+                    f"data (condition number {cond:.1e}); their coefficients are not "
+                    "identifiable from it. Use a longer or more exciting trajectory.",
+                    UserWarning,
+                    stacklevel=3,
+                )
+
+    # ------------------------------------------------------------------ using the model
+    def _check_fitted(self, what: str):
+        if not hasattr(self, "coef_"):
+            raise ValueError(f"this HuberSINDy is not fitted yet: call fit before {what}")
+
+    def get_feature_names(self) -> list[str]:
+        """Names of the library features (columns of ``coef_``)."""
+        self._check_fitted("get_feature_names")
+        return self.library_.get_feature_names()
+
+    def equations(self, precision: int = 3) -> list[str]:
+        """The right-hand sides as text, one per state, zero terms left out."""
+        self._check_fitted("equations")
+        names = self.get_feature_names()
+        out = []
+        for row in self.coef_:
+            terms = []
+            for c, name in zip(row, names, strict=True):
+                if c == 0:
+                    continue
+                val = f"{abs(c):.{precision}f}"
+                sign = "-" if c < 0 else "+"
+                term = val if name == "1" else f"{val} {name}"
+                if not terms:
+                    terms.append(term if sign == "+" else f"-{term}")
+                else:
+                    terms.append(f"{sign} {term}")
+            out.append(" ".join(terms) if terms else f"{0:.{precision}f}")
+        return out
+
+    def print(self, precision: int = 3) -> None:
+        """Print ``(x)' = ...`` for every state."""
+        for name, eq in zip(self.feature_names_, self.equations(precision), strict=False):
+            print(f"({name})' = {eq}")
+
+    def predict(self, x, u=None) -> np.ndarray:
+        """Derivatives predicted by the model at states ``x`` (and controls ``u``)."""
+        self._check_fitted("predict")
+        x = as_float_array(x, "x", (1, 2))
+        x = x[:, None] if x.ndim == 1 else x
+        if x.shape[1] != self.coef_.shape[0]:
+            raise ValueError(f"x has {x.shape[1]} columns; the model has {self.coef_.shape[0]}")
+        if u is not None:
+            u = as_float_array(u, "u", (1, 2))
+            u = u[:, None] if u.ndim == 1 else u
+            if u.shape[0] != x.shape[0]:
+                raise ValueError(f"u has {u.shape[0]} samples but x has {x.shape[0]}")
+        return self.library_.transform(self._inputs(x, u)) @ self.coef_.T
+
+    def score(self, x, t=None, x_dot=None, u=None) -> float:
+        """Coefficient of determination R^2 of the predicted derivatives (averaged)."""
+        self._check_fitted("score")
+        xs, ts, ds, us = self._trajectories(x, t, x_dot, u, need_t=False)
+        if ds is None:
+            ds = [self._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
+        pred = np.vstack([self.predict(a, b) for a, b in _pairs(xs, us)])
+        y = np.vstack(ds)
+        ss_res = ((y - pred) ** 2).sum(axis=0)
+        ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
+        return float(np.mean(1.0 - ss_res / np.where(ss_tot > 0, ss_tot, 1.0)))
+
+    def simulate(self, x0, t, u=None, **integrator_kws) -> np.ndarray:
+        """Integrate the identified equations with :func:`scipy.integrate.solve_ivp`.
+
+        ``u`` is a callable of ``t`` or an array sampled on ``t`` (interpolated
+        linearly).  ``integrator_kws`` go to ``solve_ivp`` (default ``method="LSODA"``,
+        ``rtol=1e-10``, ``atol=1e-10``).  Returns the states at ``t``, shape (len(t), n).
+        """
+        self._check_fitted("simulate")
+        t = check_time(t, "t")
+        x0 = as_float_array(x0, "x0", (1,))
+        n = self.coef_.shape[0]
+        if x0.size != n:
+            raise ValueError(f"x0 has {x0.size} values; the model has {n} states")
+        uf = input_function(u, t)
+        q = self.n_control_features_
+        if (uf is None) != (q == 0):
+            raise ValueError(
+                f"u is required: the model was fitted with {q} controls"
+                if q
+                else "u given, but the model was fitted without controls"
+            )
+
+        def rhs(s, state):
+            z = state if uf is None else np.concatenate([state, uf(s)])
+            return self.library_.transform(z[None, :])[0] @ self.coef_.T
+
+        kws = {"method": "LSODA", "rtol": 1e-10, "atol": 1e-10, **integrator_kws}
+        sol = scipy.integrate.solve_ivp(rhs, (t[0], t[-1]), x0, t_eval=t, **kws)
+        if not sol.success:
+            warnings.warn(f"simulate stopped early: {sol.message}", UserWarning, stacklevel=2)
+        return sol.y.T
+
+
+def _pairs(xs, us):
+    return zip(xs, [None] * len(xs) if us is None else us, strict=True)
+
+
+def _is_auto(value) -> bool:
+    return isinstance(value, str) and value == "auto"
