@@ -124,11 +124,53 @@ def auto_delta(
     lower = np.where(lower > 0, lower, 1.0)
     residual = y - theta @ np.linalg.lstsq(theta, y, rcond=None)[0]
     delta = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(residual), lower)
+    # Columns already fitted to the floor by least squares have nothing to refine.
+    todo = np.flatnonzero(delta > lower)
     for _ in range(n_iter):
-        res = fit(theta, y, method=method, delta=delta, lam=0.0)
-        new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(y - theta @ res.coef), lower)
-        change = np.abs(new - delta) / delta
-        delta = new
-        if np.all(change < rtol):
+        if todo.size == 0:
             break
+        res = fit(theta, y[:, todo], method=method, delta=delta[todo], lam=0.0)
+        r = y[:, todo] - theta @ res.coef
+        new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(r), lower[todo])
+        change = np.abs(new - delta[todo]) / delta[todo]
+        delta[todo] = new
+        todo = todo[change >= rtol]
     return float(delta[0]) if one_d else delta
+
+
+def threshold_refit(
+    theta,
+    xdot,
+    coef,
+    delta,
+    *,
+    tol: float = 0.005,
+    max_rounds: int = 10,
+    method: str = "admm",
+) -> np.ndarray:
+    """Selection stage after a penalised fit: drop small terms, refit the rest, repeat.
+
+    A term ``j`` of equation ``k`` is dropped when its relative contribution
+    ``|xi_jk| ||theta_j|| / ||xdot_k||`` is below ``tol``; the kept terms are refitted
+    by the Huber loss with ``lam = 0`` (removing the L1 shrinkage), until the support
+    stops changing or ``max_rounds`` is reached.  Returns the new coefficients (p, n),
+    or (p,) for a 1-D ``xdot``.
+    """
+    theta, y, one_d = check_problem(theta, xdot)
+    coef = np.asarray(coef, dtype=float).reshape(theta.shape[1], y.shape[1]).copy()
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (y.shape[1],))
+    col = np.linalg.norm(theta, axis=0)
+    ynorm = np.linalg.norm(y, axis=0)
+    for k in range(y.shape[1]):
+        keep = coef[:, k] != 0
+        for _ in range(check_int(max_rounds, "max_rounds", 1)):
+            contribution = np.abs(coef[:, k]) * col / max(ynorm[k], np.finfo(float).tiny)
+            new_keep = keep & (contribution >= tol)
+            refit = np.zeros(theta.shape[1])
+            if new_keep.any():
+                refit[new_keep] = fit(theta[:, new_keep], y[:, k], method, delta[k], 0.0).coef
+            coef[:, k] = refit
+            if np.array_equal(new_keep, keep):
+                break
+            keep = new_keep
+    return coef[:, 0] if one_d else coef
