@@ -82,8 +82,8 @@ _DRONE_PROP = [
     [0, 0.99994, 0],
     [0, 0, 0.856495],
 ]
-#: Printed coefficients and printed IAE per equation and in total (E8: the printed
-#: per-equation IAE of the proposed method do not follow from its printed coefficients).
+#: Printed coefficients and printed IAE per equation and in total (erratum E8: the
+#: printed IAE do not follow from the printed coefficients).
 PAPER = {
     "lorenz": {
         "STLS": np.array(_LORENZ_CONV),
