@@ -131,21 +131,13 @@ class HuberSINDy(BaseEstimator):
         for a in xs:
             if a.shape[1] != n:
                 raise ValueError("x: every trajectory must have the same number of states")
-        us = _as_list(u, "u", multiple)
+        us = _matching(u, "u", xs, multiple)
         if us is not None:
-            if len(us) != len(xs):
-                raise ValueError(f"u has {len(us)} trajectories but x has {len(xs)}")
-            us = [as_float_array(a, "u", (1, 2)) for a in us]
-            us = [a[:, None] if a.ndim == 1 else a for a in us]
             for a, b in zip(us, xs, strict=True):
                 if a.shape[0] != b.shape[0]:
                     raise ValueError(f"u has {a.shape[0]} samples but x has {b.shape[0]}")
-        ds = _as_list(x_dot, "x_dot", multiple)
+        ds = _matching(x_dot, "x_dot", xs, multiple)
         if ds is not None:
-            if len(ds) != len(xs):
-                raise ValueError(f"x_dot has {len(ds)} trajectories but x has {len(xs)}")
-            ds = [as_float_array(a, "x_dot", (1, 2)) for a in ds]
-            ds = [a[:, None] if a.ndim == 1 else a for a in ds]
             for a, b in zip(ds, xs, strict=True):
                 if a.shape != b.shape:
                     raise ValueError(f"x_dot has shape {a.shape} but x has shape {b.shape}")
@@ -384,6 +376,17 @@ class HuberSINDy(BaseEstimator):
         if not sol.success:
             warnings.warn(f"simulate stopped early: {sol.message}", UserWarning, stacklevel=2)
         return sol.y.T
+
+
+def _matching(values, name: str, xs: list, multiple: bool) -> list | None:
+    """``values`` as a list of 2-D float arrays, one per trajectory of ``xs``."""
+    vs = _as_list(values, name, multiple)
+    if vs is None:
+        return None
+    if len(vs) != len(xs):
+        raise ValueError(f"{name} has {len(vs)} trajectories but x has {len(xs)}")
+    vs = [as_float_array(a, name, (1, 2)) for a in vs]
+    return [a[:, None] if a.ndim == 1 else a for a in vs]
 
 
 def _pairs(xs, us):
