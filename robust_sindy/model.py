@@ -20,7 +20,7 @@ from ._fit import METHODS, fit
 from ._validation import as_float_array
 from .differentiation import finite_difference, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
-from .selection import auto_delta
+from .selection import auto_delta, threshold_refit
 from .simulate import check_time, input_function
 
 __all__ = ["HuberSINDy"]
@@ -250,22 +250,19 @@ class HuberSINDy(BaseEstimator):
         return self
 
     def _refit(self, theta, y, coef, options):
-        out = np.zeros_like(coef)
         method = self.method if self.method in ("admm", "cvxpy") else "admm"
-        for k in range(y.shape[1]):
-            keep = coef[:, k] != 0
-            if keep.any():
-                r = fit(
-                    theta[:, keep],
-                    y[:, k],
-                    method,
-                    self.delta_[k],
-                    0.0,
-                    solver=self.solver if method == "cvxpy" else None,
-                    **options,
-                )
-                out[keep, k] = r.coef
-        return out
+        solver = self.solver if method == "cvxpy" else None
+        return threshold_refit(
+            theta,
+            y,
+            coef,
+            self.delta_,
+            tol=0.0,
+            max_rounds=1,
+            method=method,
+            solver=solver,
+            **options,
+        )
 
     def _check_conditioning(self, theta):
         for k in range(self.coef_.shape[0]):

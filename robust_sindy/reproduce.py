@@ -106,7 +106,7 @@ def problem(system: str, seed: int, t_end: float = 10.0, placement: str = "state
     data = sys_.generate(t_end=t_end)
     noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(seed), placement=placement)
     z = noisy.x if data.u is None else np.hstack([noisy.x, data.u])
-    theta = sys_.library().fit_transform(z, input_names=sys_.input_names)
+    theta = sys_.fitted_library().transform(z)
     return theta, noisy.x_dot[:, list(sys_.targets)], sys_.true_coef()
 
 
@@ -254,7 +254,7 @@ def figures(system: str, runs: list[dict], out: Path, t_end: float) -> list[Path
     plt.close(fig)
 
     data = sys_.generate(t_end=min(t_end, 3.0))
-    lib = sys_.library().fit(np.zeros((1, len(sys_.input_names))), input_names=sys_.input_names)
+    lib = sys_.fitted_library()
     coef = run["methods"]["Huber, auto"]["coef"]
     targets = list(sys_.targets)
 

@@ -147,28 +147,35 @@ def threshold_refit(
     tol: float = 0.005,
     max_rounds: int = 10,
     method: str = "admm",
+    solver: str | None = None,
+    **options,
 ) -> np.ndarray:
     """Selection stage after a penalised fit: drop small terms, refit the rest, repeat.
 
     A term ``j`` of equation ``k`` is dropped when its relative contribution
     ``|xi_jk| ||theta_j|| / ||xdot_k||`` is below ``tol``; the kept terms are refitted
     by the Huber loss with ``lam = 0`` (removing the L1 shrinkage), until the support
-    stops changing or ``max_rounds`` is reached.  Returns the new coefficients (p, n),
-    or (p,) for a 1-D ``xdot``.
+    stops changing or ``max_rounds`` is reached.  ``tol = 0`` with ``max_rounds = 1`` is a
+    plain debiasing refit of the given support.  ``method``, ``solver`` and ``options``
+    go to :func:`robust_sindy.fit`.  Returns the new coefficients (p, n), or (p,) for a
+    1-D ``xdot``.
     """
     theta, y, one_d = check_problem(theta, xdot)
     coef = np.asarray(coef, dtype=float).reshape(theta.shape[1], y.shape[1]).copy()
     delta = np.broadcast_to(np.asarray(delta, dtype=float), (y.shape[1],))
     col = np.linalg.norm(theta, axis=0)
     ynorm = np.linalg.norm(y, axis=0)
+    rounds = check_int(max_rounds, "max_rounds", 1)
     for k in range(y.shape[1]):
         keep = coef[:, k] != 0
-        for _ in range(check_int(max_rounds, "max_rounds", 1)):
+        for _ in range(rounds):
             contribution = np.abs(coef[:, k]) * col / max(ynorm[k], np.finfo(float).tiny)
             new_keep = keep & (contribution >= tol)
             refit = np.zeros(theta.shape[1])
             if new_keep.any():
-                refit[new_keep] = fit(theta[:, new_keep], y[:, k], method, delta[k], 0.0).coef
+                refit[new_keep] = fit(
+                    theta[:, new_keep], y[:, k], method, delta[k], 0.0, solver=solver, **options
+                ).coef
             coef[:, k] = refit
             if np.array_equal(new_keep, keep):
                 break

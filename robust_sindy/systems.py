@@ -76,10 +76,14 @@ class _System:
         coef = self._true_coef_full()
         return coef if full else coef[:, list(self.targets)]
 
+    def fitted_library(self) -> BaseLibrary:
+        """:meth:`library` fitted to :attr:`input_names` (ready to ``transform``)."""
+        return self.library().fit(
+            np.zeros((1, len(self.input_names))), input_names=self.input_names
+        )
+
     def feature_names(self) -> list[str]:
-        lib = self.library()
-        lib.fit(np.zeros((1, len(self.input_names))), input_names=self.input_names)
-        return lib.get_feature_names()
+        return self.fitted_library().get_feature_names()
 
 
 @dataclass(frozen=True)
