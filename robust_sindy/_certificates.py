@@ -11,13 +11,14 @@ With ``r = y - Theta xi`` and ``g = Theta^T psi_delta(r)``, ``xi`` is optimal if
 
 * **KKT violation** -- per coordinate the proximal-gradient residual
   ``|xi_j - S(xi_j + t_j g_j, lam_j t_j)| / t_j`` with ``t_j = 1 / ||Theta_j||^2``,
-  divided by ``max(lam_j, ||Theta_j|| max(||psi_delta(r)||, 1e-4 ||psi_delta(y)||))``
-  and maximised over ``j``.  It is continuous in ``xi`` (a 1e-12 where the optimum has
-  an exact zero does not count as a violation) and invariant to rescaling the columns of
-  ``Theta``.  The floor ``1e-4 ||psi_delta(y)||`` (1e-4 of the gradient scale at
-  ``xi = 0``) matters only for fits with residuals 1e4 times below the data, e.g.
-  exact ones: there ``psi_delta(r)`` is rounding noise and a ratio of rounding noise to
-  rounding noise would certify nothing.
+  divided by ``max(lam_j, ||Theta_j|| ||psi_delta(r)||)`` and maximised over ``j``.
+  It is continuous in ``xi`` (a 1e-12 where the optimum has an exact zero does not
+  count as a violation) and invariant to rescaling the columns of ``Theta``.
+* Residuals at the level of floating-point error (``16 (p + 1) eps`` times
+  ``|y_i| + |Theta_i| |xi|`` entrywise, or in norm for a whole column) count as zero
+  in ``psi``: an exact fit
+  (e.g. noise-free data, ``lam = 0``) has residuals that are rounding noise, and a ratio
+  of rounding noise to rounding noise would certify nothing.
 * **Duality gap** -- the dual is
   ``max_u y^T u - ||u||^2 / 2`` s.t. ``|u_i| <= delta``, ``|Theta_j^T u| <= lam_j``;
   ``u = psi_delta(r) min(1, min_j lam_j / |g_j|)`` is dual feasible, so
@@ -71,16 +72,29 @@ def kkt_from_gradient(
         step = np.where(d2 > 0, step, np.where((xi != 0) & (lam > 0), np.inf, 0.0))
         scale = np.maximum(lam, col_norms[:, None] * psi_norm[None, :])
         rel = np.where(scale > 0, step / scale, np.where(step > 0, np.inf, 0.0))
+    # Non-finite coefficients or residuals are never certified.
+    rel = np.where(np.isnan(step) | np.isnan(scale), np.inf, rel)
     return rel.max(axis=0)
 
 
-#: Relative floor of the KKT scale, as a fraction of ``||psi_delta(y)||`` (see above).
-KKT_FLOOR = 1e-4
+def rounding_free(r: np.ndarray, y: np.ndarray, abs_fit: np.ndarray, p: int) -> np.ndarray:
+    """``r`` with residuals at the level of floating-point error set to zero.
 
-
-def kkt_psi_scale(psi_norm: np.ndarray, y: np.ndarray, delta: np.ndarray) -> np.ndarray:
-    """``max(||psi_delta(r)||, KKT_FLOOR ||psi_delta(y)||)`` per column (the KKT scale)."""
-    return np.maximum(psi_norm, KKT_FLOOR * np.linalg.norm(huber_psi(y, delta), axis=0))
+    ``abs_fit = |Theta| |xi|``.  Computing ``r_i = y_i - Theta_i xi`` carries an error
+    up to about ``p eps (|y_i| + |Theta_i| |xi|)``, and a backward-stable exact fit
+    leaves residuals of about ``eps (||y|| + || |Theta| |xi| ||)`` in norm.  Entries
+    below ``16 (p + 1) eps`` times the first, and whole columns below that many times
+    the second, are zero as far as the data can tell; treating them as anything else
+    makes an exact fit uncertifiable (its gradient would be a sum of rounding noise).
+    ``|Theta_i| |xi|`` enters only up to ``max |y|``.
+    """
+    c = 16 * (p + 1) * np.finfo(float).eps
+    # |Theta||xi| counts up to max|y|: rounding from huge cancelling coefficients (e.g.
+    # along collinear columns) is not forgiven, that point is simply not certified.
+    scale = np.abs(y) + np.minimum(abs_fit, np.abs(y).max(axis=0))
+    r = np.where(np.abs(r) <= c * scale, 0.0, r)
+    exact = np.linalg.norm(r, axis=0) <= c * np.linalg.norm(scale, axis=0)
+    return np.where(exact, 0.0, r)
 
 
 def certify(
@@ -99,11 +113,11 @@ def certify(
     if col_norms is None:
         col_norms = np.linalg.norm(theta, axis=0)
     r = y - theta @ xi
-    psi = huber_psi(r, delta)
+    psi = huber_psi(rounding_free(r, y, np.abs(theta) @ np.abs(xi), xi.shape[0]), delta)
     g = theta.T @ psi
     obj = huber(r, delta).sum(axis=0) + (lam * np.abs(xi)).sum(axis=0)
     psi_norm = np.linalg.norm(psi, axis=0)
-    kkt = kkt_from_gradient(xi, g, lam, col_norms, kkt_psi_scale(psi_norm, y, delta))
+    kkt = kkt_from_gradient(xi, g, lam, col_norms, psi_norm)
     # Dual-feasible point by scaling psi; the dual objective is quadratic in the scale.
     absg = np.abs(g)
     with np.errstate(divide="ignore", invalid="ignore"):

@@ -20,7 +20,7 @@ from ._fit import METHODS, fit
 from ._validation import as_float_array
 from .differentiation import finite_difference, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
-from .selection import auto_delta, threshold_refit
+from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
 from .simulate import check_time, input_function
 
 __all__ = ["HuberSINDy"]
@@ -42,8 +42,21 @@ class HuberSINDy(BaseEstimator):
     """Sparse identification of nonlinear dynamics with the Huber loss.
 
     Each equation ``k`` solves ``min_xi sum_i H_delta(xdot_ik - Theta_i xi) + lam
-    ||xi||_1`` (:func:`robust_sindy.fit`), optionally followed by a hard threshold and a
-    debiased refit (Huber, ``lam = 0``) on the kept terms.
+    ||xi||_1`` (:func:`robust_sindy.fit`).  With the defaults nothing needs choosing:
+
+    1. ``screen=True``: samples that are gross outliers in the library rows or the
+       derivatives are flagged (:func:`robust_sindy.selection.screen_rows`) and left
+       out;
+    2. ``delta="auto"``: 1.345 robust residual scales per equation
+       (:func:`robust_sindy.selection.auto_delta`);
+    3. ``lam="auto"``: a warm-started ``lam`` path, the selection stage (drop terms
+       below ``selection_tol`` relative contribution, refit by Huber with ``lam = 0``)
+       at every point, and the point with the best robust BIC or blocked
+       cross-validation score (:func:`robust_sindy.selection.select`).
+
+    Fixed values turn each step into the plain estimator (``screen=False``,
+    ``delta=1.0, lam=1.0`` is the paper's).  ``threshold`` and ``refit`` then act on
+    the result.
 
     Parameters
     ----------
@@ -51,12 +64,21 @@ class HuberSINDy(BaseEstimator):
         Candidate functions of the states then the controls (default: polynomials of
         degree 2).  It is cloned and fitted; the fitted copy is ``library_``.
     delta : float, array_like (n,) or "auto"
-        Huber threshold per equation; ``"auto"`` applies
-        :func:`robust_sindy.selection.auto_delta` to the library and derivatives.
-    lam : float or array_like (n,)
+        Huber threshold per equation.
+    lam : float, array_like (n,) or "auto"
         L1 weight per equation.
+    screen : bool
+        Flag and leave out gross-outlier samples before fitting.
+    criterion : {"bic", "cv"}
+        How ``lam="auto"`` picks the point on the path.
+    selection_tol : float
+        Relative contribution ``|xi_j| ||theta_j|| / ||xdot_k||`` below which
+        ``lam="auto"`` drops a term.
+    n_lams : int
+        Points on the ``lam`` path.
     method : {"admm", "cvxpy", "stls", "ols"}
-        Solver passed to :func:`robust_sindy.fit`.
+        Solver passed to :func:`robust_sindy.fit` (``lam="auto"`` needs a Huber
+        method, "admm" or "cvxpy").
     threshold : float, optional
         After the fit, set coefficients with ``|xi| < threshold`` to zero.
     refit : bool
@@ -69,20 +91,32 @@ class HuberSINDy(BaseEstimator):
         For ``method="cvxpy"``: ``"clarabel"`` or ``"osqp"``.
     solver_options : dict, optional
         Keyword options of :func:`robust_sindy.fit` (``max_iter``, ``tol``, ...).
+    progress : bool
+        Show progress bars for the ``lam`` path.
 
     Attributes
     ----------
     coef_ : ndarray, shape (n_targets, n_features)
         Identified coefficients (rows: equations; the transpose of :func:`fit`'s Xi).
+    support_ : ndarray of bool, shape (n_targets, n_features)
+        ``coef_ != 0``.
     library_ : BaseLibrary
         The fitted library; ``feature_names_`` are its input names (states, controls).
-    delta_ : ndarray (n_targets,)
-        The Huber thresholds used (chosen ones for ``delta="auto"``).
+    delta_, lam_ : ndarray (n_targets,)
+        The Huber thresholds and L1 weights used (chosen ones for ``"auto"``).
+    screened_ : ndarray of bool, shape (n_samples,)
+        Samples flagged by the screen and left out of the fit (all False without it).
+    screening_ : Screening or None
+        The screen's details (trusted equations, residual scales, rounds).
+    path_ : Path or None
+        The ``lam`` path of ``lam="auto"``.
+    selection_ : Selection or None
+        Scores and candidates of ``lam="auto"``.
     outliers_ : ndarray of bool, shape (n_samples, n_targets)
-        Whether the fitted residual of a sample exceeded ``delta`` (samples of all
-        trajectories stacked in order).
+        Whether the residual of a sample under the final model exceeds ``delta_``
+        (samples of all trajectories stacked in order).
     result_ : FitResult
-        The penalised fit (before threshold and refit).
+        The penalised fit at ``lam_`` on the kept samples (before threshold and refit).
 
     Examples
     --------
@@ -101,24 +135,34 @@ class HuberSINDy(BaseEstimator):
     def __init__(
         self,
         library: BaseLibrary | None = None,
-        delta=1.0,
-        lam=1.0,
+        delta="auto",
+        lam="auto",
+        screen: bool = True,
+        criterion: str = "bic",
+        selection_tol: float = 0.005,
+        n_lams: int = 50,
         method: str = "admm",
         threshold: float | None = None,
         refit: bool = False,
         differentiation: str | Callable = "finite_difference",
         solver: str | None = None,
         solver_options: dict | None = None,
+        progress: bool = False,
     ):
         self.library = library
         self.delta = delta
         self.lam = lam
+        self.screen = screen
+        self.criterion = criterion
+        self.selection_tol = selection_tol
+        self.n_lams = n_lams
         self.method = method
         self.threshold = threshold
         self.refit = refit
         self.differentiation = differentiation
         self.solver = solver
         self.solver_options = solver_options
+        self.progress = progress
 
     # ------------------------------------------------------------------ data handling
     def _trajectories(self, x, t, x_dot, u, *, need_t: bool):
@@ -233,21 +277,73 @@ class HuberSINDy(BaseEstimator):
         y = np.vstack(ds)
 
         options = dict(self.solver_options or {})
-        delta = auto_delta(theta, y) if _is_auto(self.delta) else self.delta
-        res = fit(theta, y, self.method, delta, self.lam, solver=self.solver, **options)
-        coef = res.coef.copy()
+        self._check_selection_params()
+        huber_method = self.method if self.method in ("admm", "cvxpy") else "admm"
+        keep = np.ones(theta.shape[0], dtype=bool)
+        self.screening_ = None
+        if self.screen:
+            self.screening_ = screen_rows(theta, y, method=huber_method)
+            keep = ~self.screening_.outliers
+        self.screened_ = ~keep
+        th, yk = theta[keep], y[keep]
+        delta = auto_delta(th, yk, method=huber_method) if _is_auto(self.delta) else self.delta
+        self.path_ = self.selection_ = None
+        if _is_auto(self.lam):
+            sel = select(
+                th,
+                yk,
+                delta,
+                criterion=self.criterion,
+                n_lams=self.n_lams,
+                tol=self.selection_tol,
+                method=self.method,
+                solver=self.solver,
+                progress=self.progress,
+                **options,
+            )
+            self.selection_, self.path_ = sel, sel.path
+            cols = np.arange(y.shape[1])
+            start = sel.path.coef[sel.index, :, cols].T
+            if self.method == "admm":
+                options = {**options, "warm_start": start}
+            res = fit(th, yk, self.method, sel.delta, sel.lam, solver=self.solver, **options)
+            options.pop("warm_start", None)
+            coef = sel.coef.copy()
+        else:
+            res = fit(th, yk, self.method, delta, self.lam, solver=self.solver, **options)
+            coef = res.coef.copy()
+        coef = coef.reshape(theta.shape[1], -1)
         self.result_ = res
         self.delta_ = res.delta
+        self.lam_ = res.lam
         if self.threshold is not None:
             if not np.isfinite(self.threshold) or self.threshold < 0:
                 raise ValueError(f"threshold must be a finite number >= 0; got {self.threshold}")
             coef[np.abs(coef) < self.threshold] = 0.0
         if self.refit:
-            coef = self._refit(theta, y, coef, options)
+            coef = self._refit(th, yk, coef, options)
         self.coef_ = coef.T
+        self.support_ = self.coef_ != 0
         self.outliers_ = np.abs(y - theta @ coef) > self.delta_
-        self._check_conditioning(theta)
+        self._check_conditioning(th)
         return self
+
+    def _check_selection_params(self):
+        if not isinstance(self.screen, bool):
+            raise ValueError(f"screen must be True or False; got {self.screen!r}")
+        if isinstance(self.lam, str) and not _is_auto(self.lam):
+            raise ValueError(f"lam must be a number, one per equation, or 'auto'; got {self.lam!r}")
+        if _is_auto(self.lam):
+            if self.method not in ("admm", "cvxpy"):
+                raise ValueError(
+                    f"lam='auto' needs a Huber method ('admm' or 'cvxpy'); got "
+                    f"method={self.method!r}: pass a number for lam"
+                )
+            if self.criterion not in CRITERIA:
+                raise ValueError(f"criterion must be one of {CRITERIA}; got {self.criterion!r}")
+            tol = self.selection_tol
+            if isinstance(tol, bool) or not np.isscalar(tol) or not np.isfinite(tol) or tol < 0:
+                raise ValueError(f"selection_tol must be a finite number >= 0; got {tol!r}")
 
     def _refit(self, theta, y, coef, options):
         method = self.method if self.method in ("admm", "cvxpy") else "admm"

@@ -10,10 +10,11 @@ paper's library and fit the paper's equations by
 * ``Huber, paper ADMM`` — delta = 1, lam = 1, the paper's ADMM settings (rho = 1, no
   equilibration, no adaptation, no finish, 5000 iterations);
 * ``Huber, certified`` — the same problem solved to a certified optimum;
-* ``Huber, auto`` — delta by the MAD rule (:func:`robust_sindy.selection.auto_delta`),
-  lam = 1e-4 lambda_max(delta) per equation, then the selection stage
-  (:func:`robust_sindy.selection.threshold_refit`: relative contribution below 0.005
-  dropped, Huber refit with lam = 0 on the rest).
+* ``Huber, auto`` — nothing chosen by hand: gross-outlier samples screened out
+  (:func:`robust_sindy.selection.screen_rows`), delta by the robust-scale rule
+  (:func:`robust_sindy.selection.auto_delta`), lam per equation by the robust BIC over a
+  50-point path with the selection stage at every point
+  (:func:`robust_sindy.selection.select`) — what ``HuberSINDy()`` does by default.
 
 IAE (paper Eq. 21) is recomputed from the coefficients.
 """
@@ -29,7 +30,7 @@ import numpy as np
 from ._fit import ConvergenceWarning, fit
 from .metrics import iae, support_scores
 from .noise import contaminate
-from .selection import auto_delta, lambda_max, threshold_refit
+from .selection import auto_delta, screen_rows, select
 from .solvers.admm import PAPER_OPTIONS
 from .systems import Drone, Lorenz
 
@@ -101,18 +102,18 @@ PAPER = {
 
 
 def problem(system: str, seed: int, t_end: float = 10.0, placement: str = "states"):
-    """Library matrix, targets and true coefficients of one contaminated run."""
+    """Library matrix, targets, true coefficients and contaminated rows of one run."""
     sys_ = SYSTEMS[system]
     data = sys_.generate(t_end=t_end)
     noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(seed), placement=placement)
     z = noisy.x if data.u is None else np.hstack([noisy.x, data.u])
     theta = sys_.fitted_library().transform(z)
-    return theta, noisy.x_dot[:, list(sys_.targets)], sys_.true_coef()
+    return theta, noisy.x_dot[:, list(sys_.targets)], sys_.true_coef(), noisy.outliers
 
 
 def run_seed(system: str, seed: int, t_end: float = 10.0, placement: str = "states") -> dict:
     """Fit every method on one seed; return coefficients, IAE, support and convergence."""
-    theta, y, true = problem(system, seed, t_end, placement)
+    theta, y, true, outliers = problem(system, seed, t_end, placement)
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)  # recorded in "converged"
@@ -123,10 +124,12 @@ def run_seed(system: str, seed: int, t_end: float = 10.0, placement: str = "stat
         out["Huber, paper ADMM"] = (paper.coef, paper.converged)
         cert = fit(theta, y, delta=1.0, lam=1.0)
         out["Huber, certified"] = (cert.coef, cert.converged)
-        delta = np.atleast_1d(auto_delta(theta, y))
-        lam = 1e-4 * np.atleast_1d(lambda_max(theta, y, delta))
-        auto = fit(theta, y, delta=delta, lam=lam)
-        out["Huber, auto"] = (threshold_refit(theta, y, auto.coef, delta), auto.converged)
+        screen = screen_rows(theta, y)
+        keep = ~screen.outliers
+        delta = np.atleast_1d(auto_delta(theta[keep], y[keep]))
+        sel = select(theta[keep], y[keep], delta)
+        cols = np.arange(y.shape[1])
+        out["Huber, auto"] = (sel.coef, bool(sel.path.converged[sel.index, cols].all()))
     rows = {}
     for name, (coef, converged) in out.items():
         rows[name] = {
@@ -136,7 +139,17 @@ def run_seed(system: str, seed: int, t_end: float = 10.0, placement: str = "stat
             "exact": support_scores(true, coef).exact,
             "converged": bool(converged),
         }
-    return {"system": system, "seed": seed, "delta_auto": delta, "methods": rows}
+    return {
+        "system": system,
+        "seed": seed,
+        "delta_auto": delta,
+        "lam_auto": sel.lam,
+        "flagged": int(screen.outliers.sum()),
+        "flagged_true": int((screen.outliers & outliers).sum()),
+        "n_outliers": int(outliers.sum()),
+        "m": int(theta.shape[0]),
+        "methods": rows,
+    }
 
 
 def summarise(runs: list[dict]) -> list[dict]:

@@ -53,3 +53,14 @@ def test_kkt_is_invariant_to_column_scaling(solved):
     k1 = rs.kkt_violation(theta, y, other, lam=0.0)
     k2 = rs.kkt_violation(theta * scale, y, other / scale[:, None], lam=0.0)
     np.testing.assert_allclose(k1, k2, rtol=1e-8)
+
+
+def test_non_finite_solver_output_is_never_certified():
+    from robust_sindy._certificates import certify
+
+    theta, y = random_problem(3)
+    xi = np.zeros((theta.shape[1], y.shape[1]))
+    xi[0, 0] = np.nan
+    cert = certify(theta, y, xi, np.ones(y.shape[1]), np.ones((1, y.shape[1])))
+    assert cert.kkt[0] == np.inf
+    assert np.isfinite(cert.kkt[1:]).all()

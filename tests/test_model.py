@@ -22,7 +22,7 @@ def drone_data():
 def _drone_model():
     # The drone's library columns are small (|theta_dot| ~ 0.2), so lam = 1 would shrink
     # them hard; noise-free data needs little penalty before threshold and refit.
-    return HuberSINDy(library=Drone().library(), lam=0.01, threshold=0.05, refit=True)
+    return HuberSINDy(library=Drone().library())
 
 
 def test_noise_free_lorenz_exact_support_and_coefficients(lorenz_data):

@@ -42,14 +42,16 @@ Newton finish produced a point with a certified KKT violation.
 
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 import scipy.linalg
 
-from .._certificates import certify, kkt_from_gradient, kkt_psi_scale
+from .._certificates import certify, kkt_from_gradient, rounding_free
 from .._losses import huber, huber_prox, huber_psi, soft_threshold
 from ._base import SolverOutput
 
-__all__ = ["DEFAULT_OPTIONS", "PAPER_OPTIONS", "solve_admm"]
+__all__ = ["DEFAULT_OPTIONS", "PAPER_OPTIONS", "Prepared", "prepare", "solve_admm"]
 
 DEFAULT_OPTIONS = dict(
     rho=0.1,
@@ -61,7 +63,7 @@ DEFAULT_OPTIONS = dict(
     max_iter=20000,
     eps_abs=1e-10,
     eps_rel=1e-10,
-    tol=1e-9,
+    tol=1e-8,
     gap_tol=1e-12,
     check_every=10,
     newton_steps=8,
@@ -85,6 +87,10 @@ PAPER_OPTIONS = dict(
 )
 
 _RHO_MIN, _RHO_MAX, _MU, _TAU_MAX = 1e-10, 1e10, 10.0, 10.0
+_MAX_STEP = 2.0**20  # longest line-search step
+_FIRST_NEWTON = 5  # the first finish (before any ADMM) may take 5x newton_steps
+_EIG_CUT = 1e-11  # relative eigenvalue cut of the Newton systems
+_RCOND = np.sqrt(_EIG_CUT)  # the same cut on singular values
 _MAX_POLISH_INTERVAL = 100
 
 
@@ -104,8 +110,9 @@ def _solve_sym(M: np.ndarray, b: np.ndarray) -> np.ndarray:
     "succeeds" with a tiny pivot and returns a huge, meaningless step.
     """
     w, V = np.linalg.eigh(M)
-    keep = w > 1e-11 * max(w[-1], 0.0) if w.size else w.astype(bool)
-    return V[:, keep] @ ((V[:, keep].T @ b) / w[keep])
+    keep = w > _EIG_CUT * max(w[-1], 0.0) if w.size else w.astype(bool)
+    inv = 1.0 / w[keep]
+    return V[:, keep] @ ((V[:, keep].T @ b) * (inv if b.ndim == 1 else inv[:, None]))
 
 
 def _slope(t, r, q, x, d, lam, delta):
@@ -119,22 +126,62 @@ def _slope(t, r, q, x, d, lam, delta):
 
 
 def _line_search(r, q, x, d, lam, delta) -> float:
-    """Exact minimiser of the convex ``phi(t)`` on ``[0, 1]`` (0 if ``d`` is no descent)."""
+    """Exact minimiser of the convex piecewise-quadratic ``phi(t)`` over ``t >= 0``.
+
+    ``phi'(t) = a + b t`` between breakpoints (a residual entering or leaving the
+    quadratic zone of the Huber loss, a coordinate crossing zero); the breakpoints are
+    sorted once and the slope is accumulated segment by segment, so the minimiser is
+    exact (0 if ``d`` is no descent direction, at most ``_MAX_STEP``).
+    """
     if _slope(0.0, r, q, x, d, lam, delta) >= 0:
         return 0.0
-    if _slope(1.0, r, q, x, d, lam, delta) <= 0:
-        return 1.0
-    lo, hi = 0.0, 1.0
-    for _ in range(52):  # bisection on the monotone slope, to machine precision in t
-        mid = 0.5 * (lo + hi)
-        if _slope(mid, r, q, x, d, lam, delta) > 0:
-            hi = mid
-        else:
-            lo = mid
-    return hi
+    # Slope at t = 0+ split into a + b t, and the jumps of (a, b) at later breakpoints.
+    moving = q != 0
+    rq, qq = r[moving], q[moving]
+    absq = np.abs(qq)
+    t_a = (rq - delta) / qq  # residual crosses +delta
+    t_b = (rq + delta) / qq  # residual crosses -delta
+    lo, hi = np.minimum(t_a, t_b), np.maximum(t_a, t_b)
+    before = (-absq * delta, np.zeros_like(qq))
+    quad = (-qq * rq, qq * qq)
+    after = (absq * delta, np.zeros_like(qq))
+    # A residual exactly at +-delta has slope continuous there, so "<= 0" is harmless.
+    zone_quad = (lo <= 0) & (hi > 0)
+    zone_after = hi <= 0
+    a0 = np.where(zone_after, after[0], np.where(zone_quad, quad[0], before[0])).sum()
+    b0 = np.where(zone_quad, quad[1], 0.0).sum()
+    s0 = np.where(x != 0, np.sign(x), np.sign(d))
+    a0 += (lam * s0) @ d
+    ev_t = [lo[lo > 0], hi[hi > 0]]
+    ev_a = [(quad[0] - before[0])[lo > 0], (after[0] - quad[0])[hi > 0]]
+    ev_b = [(quad[1] - before[1])[lo > 0], (after[1] - quad[1])[hi > 0]]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        tz = np.where(d != 0, -x / d, -1.0)
+    cross = tz > 0
+    ev_t.append(tz[cross])
+    ev_a.append((lam * np.abs(d) - lam * s0 * d)[cross])
+    ev_b.append(np.zeros(int(cross.sum())))
+    t_ev = np.concatenate(ev_t)
+    order = np.argsort(t_ev, kind="stable")
+    t_ev = t_ev[order]
+    ca = a0 + np.concatenate([[0.0], np.cumsum(np.concatenate(ev_a)[order])])
+    cb = b0 + np.concatenate([[0.0], np.cumsum(np.concatenate(ev_b)[order])])
+    starts = np.concatenate([[0.0], t_ev])
+    ends = np.concatenate([t_ev, [np.inf]])
+    with np.errstate(invalid="ignore"):
+        end_slope = np.where(np.isfinite(ends), ca + cb * ends, np.where(cb > 0, np.inf, ca))
+    hit = np.flatnonzero(end_slope >= 0)
+    if hit.size == 0:
+        return _MAX_STEP
+    k = hit[0]
+    if ca[k] + cb[k] * starts[k] >= 0 or cb[k] <= 0:
+        t = starts[k]
+    else:
+        t = -ca[k] / cb[k]
+    return float(min(max(t, 0.0), _MAX_STEP))
 
 
-def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschitz):
+def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschitz, abs_a=None):
     """Semismooth Newton on one column, globalised by an exact line search.
 
     ``A`` (m, p), ``G = A^T A``, ``y`` (m,), ``lam`` (p,), scalar ``delta``,
@@ -153,30 +200,58 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
     free = lam == 0
     T = 1.0 / col_norms**2
     r = y - A @ x
-    psi_floor = kkt_psi_scale(np.zeros(1), y[:, None], np.array([delta]))
+    best = None
+    abs_a = np.abs(A) if abs_a is None else abs_a
+    p = A.shape[1]
     for step in range(max_steps + 1):
-        psi = huber_psi(r, delta)
+        psi = huber_psi(rounding_free(r, y, abs_a @ np.abs(x), p), delta)
         g = A.T @ psi
-        psi_scale = np.maximum(np.linalg.norm(psi), psi_floor)
+        psi_scale = np.atleast_1d(np.linalg.norm(psi))
         kkt = kkt_from_gradient(x[:, None], g[:, None], lam[:, None], col_norms, psi_scale)[0]
-        if kkt <= tol:
-            return x, True, step
+        if kkt <= tol and (best is None or kkt < best[1]):
+            best = (x, kkt, step)
+        if kkt <= 0.1 * tol:  # a margin, so the check in the caller's units passes too
+            break
         if step == max_steps:
             break
         u = x + T * g
         S = (np.abs(u) > T * lam) | free
         sigma = np.where(free, 0.0, np.sign(u))
         out = np.abs(r) > delta
-        w = np.where(out, delta * np.sign(r), y)
         AS = A[:, S]
-        if 2 * np.count_nonzero(out) < A.shape[0]:
-            AO = AS[out]
-            M = G[np.ix_(S, S)] - AO.T @ AO
+        inl = ~out
+        AI = AS[inl]
+        n_s = AS.shape[1]
+        # The inlier least-squares part by an orthogonal factorisation (residuals of an
+        # exact fit stay at rounding level), the linear terms through the Gram matrix.
+        if AI.size:
+            step_s, _, rank, _ = np.linalg.lstsq(AI, y[inl], rcond=_RCOND)
         else:
-            AI = AS[~out]
-            M = AI.T @ AI
+            step_s, rank = np.zeros(n_s), 0
+        if rank < n_s:
+            # Too few inliers to fix the support's coefficients (the loss is linear along
+            # some direction, as in least-absolute-deviation fits): take the
+            # iteratively-reweighted least-squares step instead, whose quadratic model
+            # majorises the Huber loss (weights min(1, delta / |r_i|)).
+            sw = np.sqrt(np.minimum(1.0, delta / np.maximum(np.abs(r), np.finfo(float).tiny)))
+            AW = AS * sw[:, None]
+            step_s = np.linalg.lstsq(AW, sw * y, rcond=_RCOND)[0]
+            b = -lam[S] * sigma[S]
+            if np.any(b):
+                step_s += _solve_sym(AW.T @ AW, b)
+        else:
+            b = -lam[S] * sigma[S]
+            if out.any():
+                b += delta * (AS[out].T @ np.sign(r[out]))
+            if np.any(b):
+                if 2 * np.count_nonzero(out) < A.shape[0]:
+                    AO = AS[out]
+                    M = G[np.ix_(S, S)] - AO.T @ AO
+                else:
+                    M = AI.T @ AI
+                step_s += _solve_sym(M, b)
         cand = np.zeros_like(x)
-        cand[S] = _solve_sym(M, AS.T @ w - lam[S] * sigma[S])
+        cand[S] = step_s
         d = cand - x
         q = A @ d
         t = _line_search(r, q, x, d, lam, delta)
@@ -192,7 +267,50 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
         else:
             x = x + t * d
             r = r - t * q
-    return x, False, step
+    if best is None:
+        return x, False, step
+    x, _, step = best
+    # A partial line-search step leaves rounding-level entries where the optimum has
+    # exact zeros; drop those the proximal-gradient map sets to zero if the certificate
+    # still holds.
+    g = A.T @ huber_psi(rounding_free(y - A @ x, y, abs_a @ np.abs(x), p), delta)
+    zero = (np.abs(x + T * g) <= T * lam) & (x != 0)
+    if zero.any():
+        xc = np.where(zero, 0.0, x)
+        psi = huber_psi(rounding_free(y - A @ xc, y, abs_a @ np.abs(xc), p), delta)
+        scale = np.atleast_1d(np.linalg.norm(psi))
+        kkt = kkt_from_gradient(xc[:, None], (A.T @ psi)[:, None], lam[:, None], col_norms, scale)
+        if kkt[0] <= tol:
+            x = xc
+    return x, True, step
+
+
+@dataclass(frozen=True)
+class Prepared:
+    """What ADMM and its finish compute from ``Theta`` alone (reusable along a path)."""
+
+    nz: np.ndarray  # nonzero columns of Theta
+    scale: np.ndarray  # their equilibration scales
+    A: np.ndarray  # Theta[:, nz] / scale
+    G: np.ndarray  # A^T A
+    a_norms: np.ndarray
+    abs_a: np.ndarray
+    lipschitz: float
+    factor: tuple  # Cholesky factor of G + kappa I
+    equilibrate: bool
+    kappa: float
+
+
+def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
+    """Equilibrate ``theta`` and factorise once; pass as ``prepared`` to :func:`solve_admm`."""
+    norms = _colnorm(theta)
+    nz = norms > 0
+    scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
+    A = theta[:, nz] / scale
+    G = A.T @ A
+    lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny) if G.size else 1.0
+    factor = scipy.linalg.cho_factor(G + kappa * np.eye(A.shape[1]), check_finite=False)
+    return Prepared(nz, scale, A, G, _colnorm(A), np.abs(A), lipschitz, factor, equilibrate, kappa)
 
 
 def solve_admm(
@@ -215,6 +333,7 @@ def solve_admm(
     check_every: int = DEFAULT_OPTIONS["check_every"],
     newton_steps: int = DEFAULT_OPTIONS["newton_steps"],
     warm_start: tuple[np.ndarray, np.ndarray | None] | None = None,
+    prepared: Prepared | None = None,
 ) -> SolverOutput:
     """Solve all columns of the Huber-Lasso (or Lasso, ``delta = inf``) problem by ADMM.
 
@@ -254,14 +373,22 @@ def solve_admm(
     warm_start : (coef, dual) or None
         Coefficients (p, n) and, optionally, the dual estimate ``psi_delta(r)`` (m, n)
         of an earlier solve; missing duals are derived from the coefficients.
+    prepared : Prepared, optional
+        :func:`prepare` applied to this ``theta`` (skips the equilibration and the
+        factorisation when solving repeatedly on the same library).
     """
     m, p = theta.shape
     n = y.shape[1]
     lam = np.broadcast_to(lam, (p, n)).astype(float)
-    norms = _colnorm(theta)
-    nz = norms > 0
-    scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
-    A = theta[:, nz] / scale
+    if prepared is None or prepared.equilibrate != equilibrate or prepared.kappa != kappa:
+        prepared = prepare(theta, equilibrate=equilibrate, kappa=kappa)
+    nz, scale, A, G = prepared.nz, prepared.scale, prepared.A, prepared.G
+    a_norms, abs_a, lipschitz, factor = (
+        prepared.a_norms,
+        prepared.abs_a,
+        prepared.lipschitz,
+        prepared.factor,
+    )
     lam_s = lam[nz] / scale[:, None]
     # Exact per-column rescaling y/c, delta/c, lam/c (solution xi/c) with c = delta, so
     # every column is solved in units of its Huber threshold (rms of y for the squared loss).
@@ -271,10 +398,6 @@ def solve_admm(
     delta = delta / c
     lam_s = lam_s / c
     ps = A.shape[1]
-    a_norms = _colnorm(A)
-    G = A.T @ A
-    lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny)
-    factor = scipy.linalg.cho_factor(G + kappa * np.eye(ps), check_finite=False)
 
     rho_k = np.full(n, float(rho))
     if warm_start is not None:
@@ -298,10 +421,10 @@ def solve_admm(
     converged = np.zeros(n, dtype=bool)
     messages = ["iteration limit reached"] * n
     active = np.arange(n)
-    next_polish = 0 if warm_start is not None else check_every
+    next_polish = check_every
     sq_mp, sq_p = np.sqrt(m + ps), np.sqrt(ps)
 
-    def finish(cols, k_local, x_start):
+    def finish(cols, k_local, x_start, max_steps=newton_steps):
         """Newton finish on local columns; returns a mask of certified ones."""
         done = np.zeros(len(cols), dtype=bool)
         for j in k_local:
@@ -313,10 +436,11 @@ def solve_admm(
                 lam_act[:, j],
                 delta_act[j],
                 x_start[:, j],
-                max_steps=newton_steps,
+                max_steps=max_steps,
                 tol=tol,
                 col_norms=a_norms,
                 lipschitz=lipschitz,
+                abs_a=abs_a,
             )
             newton_total[k] += steps
             if ok:
@@ -340,11 +464,18 @@ def solve_admm(
 
     y_act, lam_act, delta_act, rho_act = y, lam_s, delta, rho_k
     it = 0
-    if polish and next_polish == 0:
-        done = finish(active, range(len(active)), z)
+    # xi = 0 is optimal iff |A^T psi(y)| <= lam (lam >= lambda_max): exact, one pass.
+    done = np.all(np.abs(A.T @ huber_psi(y, delta)) <= lam_s * (1 + 1e-10), axis=0)
+    for k in np.flatnonzero(done):
+        converged[k] = True
+        messages[k] = "zero is optimal (lam >= lambda_max)"
+    if polish:
+        # Newton first: from the warm start, or from the (minimum-norm)
+        # least-squares solution; most problems are finished here without ADMM.
+        start = z if warm_start is not None else _solve_sym(G, A.T @ y)
+        todo = np.flatnonzero(~done)
+        done |= finish(active, todo, start, _FIRST_NEWTON * newton_steps)
         next_polish = check_every
-    else:
-        done = np.zeros(n, dtype=bool)
     while True:
         if done.any():
             final_rho[active[done]] = rho_act[done]

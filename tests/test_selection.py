@@ -1,0 +1,235 @@
+"""lambda_max, automatic delta, row screening, the lam path, criteria and HuberSINDy(auto)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import robust_sindy as rs
+from robust_sindy import HuberSINDy
+from robust_sindy.library import PolynomialLibrary
+from robust_sindy.noise import contaminate
+from robust_sindy.selection import (
+    auto_delta,
+    blocked_folds,
+    information_criterion,
+    lambda_max,
+    path,
+    screen_rows,
+    select,
+)
+from robust_sindy.simulate import rk4
+from robust_sindy.systems import Drone, Lorenz
+
+from .conftest import random_problem
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_lambda_max_is_the_smallest_all_zero_lam(seed):
+    theta, y = random_problem(seed)
+    delta = np.array([0.5, 2.0])
+    lmax = lambda_max(theta, y, delta)
+    at = rs.fit(theta, y, delta=delta, lam=lmax)
+    below = rs.fit(theta, y, delta=delta, lam=0.99 * lmax)
+    assert at.converged and below.converged
+    assert np.all(at.coef == 0)
+    assert np.all(np.count_nonzero(below.coef, axis=0) >= 1)
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_auto_delta_recovers_the_gaussian_scale_under_20_percent_gross_outliers(seed):
+    rng = np.random.default_rng(seed)
+    m, sigma = 2000, 0.3
+    theta = rng.normal(size=(m, 6))
+    y = theta @ rng.normal(size=6) + sigma * rng.normal(size=m)
+    bad = rng.choice(m, m // 5, replace=False)
+    y[bad] += rng.normal(scale=50 * sigma, size=bad.size)
+    scale = auto_delta(theta, y) / 1.345
+    assert abs(scale - sigma) <= 0.2 * sigma
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_warm_path_matches_cold_fits(seed):
+    theta, y = random_problem(seed + 10)
+    delta = np.array([1.0, 0.3])
+    warm = path(theta, y, delta, n_lams=20)
+    assert warm.converged.all()
+    np.testing.assert_allclose(warm.lams[0], lambda_max(theta, y, delta))
+    assert np.all(warm.coef[0] == 0)
+    assert np.all(np.diff(warm.lams, axis=0) < 0)
+    for i in range(0, 20, 3):
+        cold = rs.fit(theta, y, delta=delta, lam=warm.lams[i])
+        ref = rs.fit(theta, y, "cvxpy", delta=delta, lam=warm.lams[i])
+        assert cold.converged
+        rel = np.abs(warm.objective[i] - cold.objective) / np.abs(cold.objective)
+        assert np.all(rel <= 1e-8)
+        assert np.all(warm.objective[i] <= ref.objective * (1 + 1e-7))
+
+
+def test_path_cold_option_and_cvxpy_agree():
+    theta, y = random_problem(3, m=150, p=6, n=1)
+    lams = np.geomspace(lambda_max(theta, y, 1.0), 1e-3, 6)
+    cold = path(theta, y, 1.0, lams, warm_start=False)
+    ref = path(theta, y, 1.0, lams, method="cvxpy")
+    rel = np.abs(cold.objective - ref.objective) / np.abs(ref.objective)
+    assert np.all(rel <= 1e-6)
+
+
+@pytest.mark.parametrize("m, k", [(100, 5), (1001, 7), (10, 10), (37, 2)])
+def test_blocked_folds_are_contiguous_and_cover_every_sample_once(m, k):
+    folds = blocked_folds(m, k)
+    assert len(folds) == k
+    tests = [test for _, test in folds]
+    assert np.array_equal(np.sort(np.concatenate(tests)), np.arange(m))
+    for train, test in folds:
+        assert test.size >= 1
+        assert np.all(np.diff(test) == 1)  # one contiguous block, in time order
+        assert np.intersect1d(train, test).size == 0
+        assert train.size + test.size == m
+    sizes = [t.size for t in tests]
+    assert max(sizes) - min(sizes) <= 1
+
+
+def test_information_criterion_prefers_the_true_support():
+    rng = np.random.default_rng(0)
+    theta = rng.normal(size=(400, 5))
+    coef = np.array([1.0, 0.0, -2.0, 0.0, 0.0])
+    y = theta @ coef + 0.1 * rng.normal(size=400)
+    delta = 1.345 * 0.1
+    true = information_criterion(theta, y, coef, delta)
+    dense = rs.fit(theta, y, delta=delta, lam=0.0).coef
+    missing = coef * np.array([1, 0, 0, 0, 0])
+    assert true < information_criterion(theta, y, dense, delta)
+    assert true < information_criterion(theta, y, missing, delta)
+
+
+@pytest.mark.parametrize("criterion", ["bic", "cv"])
+def test_select_recovers_a_sparse_model_under_gross_outliers(criterion):
+    rng = np.random.default_rng(4)
+    theta = rng.normal(size=(600, 10))
+    coef = np.zeros((10, 2))
+    coef[[0, 4], 0] = [2.0, -1.0]
+    coef[[1, 7, 9], 1] = [0.5, 3.0, -0.7]
+    y = theta @ coef + 0.05 * rng.normal(size=(600, 2))
+    bad = rng.choice(600, 120, replace=False)
+    y[bad] += rng.normal(scale=20.0, size=(120, 2))
+    sel = select(theta, y, criterion=criterion)
+    assert np.array_equal(sel.support, coef != 0)
+    np.testing.assert_allclose(sel.coef[coef != 0], coef[coef != 0], atol=0.02)
+    assert sel.scores.shape == sel.path.lams.shape
+    assert np.all(sel.lam == sel.path.lams[sel.index, [0, 1]])
+
+
+def _lorenz_problem(seed):
+    lorenz = Lorenz()
+    data = lorenz.generate()
+    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(seed))
+    return lorenz.fitted_library().transform(noisy.x), noisy, lorenz
+
+
+def test_screen_flags_the_contaminated_samples():
+    theta, noisy, _ = _lorenz_problem(0)
+    s = screen_rows(theta, noisy.x_dot)
+    assert s.converged
+    assert np.all(s.outliers[noisy.outliers])  # every contaminated sample
+    assert np.mean(s.outliers[~noisy.outliers]) < 0.06  # few clean ones
+    assert s.trusted.all()
+
+
+def test_screen_finds_bad_leverage_rows_in_the_drone():
+    drone = Drone()
+    data = drone.generate()
+    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(1))
+    theta = drone.fitted_library().transform(np.hstack([noisy.x, data.u]))
+    s = screen_rows(theta, noisy.x_dot[:, 3:])
+    assert np.mean(s.outliers[noisy.outliers]) >= 0.97
+    assert np.mean(s.outliers[~noisy.outliers]) < 0.03
+
+
+def test_screen_flags_nothing_on_clean_data():
+    lorenz = Lorenz()
+    data = lorenz.generate(t_end=5.0)
+    theta = lorenz.fitted_library().transform(data.x)
+    assert not screen_rows(theta, data.x_dot).outliers.any()
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_huber_sindy_defaults_recover_lorenz_from_contaminated_states(seed):
+    _, noisy, lorenz = _lorenz_problem(seed)
+    data = lorenz.generate()
+    model = HuberSINDy().fit(noisy.x, data.t, x_dot=noisy.x_dot, feature_names=["x", "y", "z"])
+    true = lorenz.true_coef().T
+    assert np.array_equal(model.support_, true != 0)
+    assert rs.metrics.iae(true, model.coef_) < 1e-2
+    assert model.screened_.shape == (data.t.size,)
+    assert np.all(model.screened_[noisy.outliers])
+    assert model.path_.coef.shape == (50, 10, 3)
+    assert model.lam_.shape == (3,) and np.all(model.lam_ > 0)
+
+
+def test_huber_sindy_defaults_recover_the_drone_from_contaminated_states():
+    drone = Drone()
+    data = drone.generate()
+    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(2))
+    model = HuberSINDy(library=drone.library()).fit(
+        noisy.x, data.t, x_dot=noisy.x_dot, u=data.u, feature_names=drone.input_names
+    )
+    true = drone.true_coef(full=True).T
+    assert np.array_equal(model.support_[3:], true[3:] != 0)
+
+
+def _duffing(t, x, u):
+    # Damped Duffing oscillator: x'' = -0.1 x' - x - 5 x^3 (never used to tune anything).
+    return np.array([x[1], -0.1 * x[1] - x[0] - 5.0 * x[0] ** 3])
+
+
+def test_huber_sindy_defaults_on_an_unseen_system():
+    t = np.arange(0, 20, 0.01)
+    x = rk4(_duffing, [1.5, 0.0], t)
+    x_dot = np.array([_duffing(0, s, None) for s in x])
+    noisy = contaminate(x, x_dot, rng=np.random.default_rng(5))
+    library = PolynomialLibrary(degree=3)
+    model = HuberSINDy(library=library).fit(noisy.x, t, x_dot=noisy.x_dot, feature_names=["x", "v"])
+    names = model.get_feature_names()
+    true = np.zeros((2, len(names)))
+    true[0, names.index("v")] = 1.0
+    true[1, [names.index("v"), names.index("x"), names.index("x^3")]] = [-0.1, -1.0, -5.0]
+    assert np.array_equal(model.support_, true != 0), model.equations()
+    np.testing.assert_allclose(model.coef_[true != 0], true[true != 0], rtol=0.02)
+
+
+def test_selection_parameters_are_checked():
+    data = Lorenz().generate(t_end=2.0)
+    cases = [
+        (dict(screen="yes"), "screen"),
+        (dict(lam="best"), "lam"),
+        (dict(criterion="aic"), "criterion"),
+        (dict(selection_tol=-1.0), "selection_tol"),
+        (dict(method="stls"), "lam='auto'"),
+    ]
+    for params, word in cases:
+        with pytest.raises(ValueError, match=word):
+            HuberSINDy(**params).fit(data.x, data.t, x_dot=data.x_dot)
+    theta = Lorenz().fitted_library().transform(data.x)
+    with pytest.raises(ValueError, match="lams"):
+        path(theta, data.x_dot, 1.0, lams=[1.0, 2.0])
+    with pytest.raises(ValueError, match="n_folds"):
+        blocked_folds(5, 6)
+    with pytest.raises(ValueError, match="criterion"):
+        select(theta, data.x_dot, criterion="aic")
+    with pytest.raises(ValueError, match="cutoff"):
+        screen_rows(theta, data.x_dot, cutoff=0)
+
+
+def test_uncertified_path_points_warn():
+    theta, y = random_problem(6)
+    with pytest.warns(rs.ConvergenceWarning, match="path points"):
+        p = path(theta, y, 1e-6, n_lams=5, max_iter=1, newton_steps=0)
+    assert not p.converged.all()
+
+
+def test_no_warning_on_clean_defaults():
+    data = Lorenz().generate(t_end=5.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot)
