@@ -39,7 +39,7 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.stats
-from tqdm.auto import tqdm
+from tqdm import tqdm
 
 from ._certificates import certify
 from ._fit import ConvergenceWarning, _admm_options, fit
