@@ -2,7 +2,8 @@
 
 ``robust-sindy reproduce [lorenz|drone|all] [--seeds N] [--out DIR] [--jobs J]``
 re-runs the paper's experiments over many seeds, prints the tables and writes Markdown,
-CSV and PNG files to ``DIR``.
+CSV and PNG files to ``DIR``.  ``robust-sindy bench [--quick]`` times the fast path
+against the solvers people would use instead and writes ``benchmark.md``/``.csv``/``.png``.
 """
 
 from __future__ import annotations
@@ -87,6 +88,21 @@ def _reproduce(args) -> int:
     return 0
 
 
+def _bench(args) -> int:
+    from . import bench
+
+    if args.quick:
+        sizes, repeats = ((200, 2),), 1
+    else:
+        sizes, repeats = bench.run.__defaults__[0], args.repeats
+    rows = bench.run(sizes, repeats=repeats, skip_after=args.skip_after, progress=not args.quiet)
+    command = "robust-sindy bench" + (" --quick" if args.quick else "")
+    print(bench.table(rows))
+    paths = bench.write(rows, Path(args.out), command)
+    print("wrote", ", ".join(str(p) for p in paths))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="robust-sindy", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -98,7 +114,19 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--t-end", type=float, default=10.0, help="simulated seconds (10)")
     rep.add_argument("--placement", default="states", choices=PLACEMENTS)
     rep.add_argument("--quiet", action="store_true", help="no progress bar off a terminal")
+    ben = sub.add_parser("bench", help="time the fast path against CVXPY, OSQP, skglm and PySINDy")
+    ben.add_argument("--quick", action="store_true", help="tiny sizes, one timed run each")
+    ben.add_argument("--out", default="validation/results", help="output folder")
+    ben.add_argument("--repeats", type=int, default=5, help="timed runs per solver (5)")
+    ben.add_argument(
+        "--skip-after", type=float, default=60.0, help="skip a solver at larger sizes after (60 s)"
+    )
+    ben.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
+    if args.command == "bench":
+        if args.repeats < 1:
+            parser.error("--repeats must be >= 1")
+        return _bench(args)
     if args.command == "reproduce":
         if args.seeds < 1:
             parser.error("--seeds must be >= 1")
