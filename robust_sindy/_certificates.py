@@ -77,21 +77,26 @@ def kkt_from_gradient(
     return rel.max(axis=0)
 
 
-def rounding_free(r: np.ndarray, y: np.ndarray, abs_fit: np.ndarray, p: int) -> np.ndarray:
+def rounding_free(r: np.ndarray, y: np.ndarray, abs_theta, xi: np.ndarray) -> np.ndarray:
     """``r`` with residuals at the level of floating-point error set to zero.
 
-    ``abs_fit = |Theta| |xi|``.  Computing ``r_i = y_i - Theta_i xi`` carries an error
-    up to about ``p eps (|y_i| + |Theta_i| |xi|)``, and a backward-stable exact fit
-    leaves residuals of about ``eps (||y|| + || |Theta| |xi| ||)`` in norm.  Entries
-    below ``16 (p + 1) eps`` times the first, and whole columns below that many times
-    the second, are zero as far as the data can tell; treating them as anything else
-    makes an exact fit uncertifiable (its gradient would be a sum of rounding noise).
-    ``|Theta_i| |xi|`` enters only up to ``max |y|``.
+    ``abs_theta`` is ``|Theta|`` or a function returning it (called only when needed).
+    Computing ``r_i = y_i - Theta_i xi`` carries an error up to
+    about ``p eps (|y_i| + |Theta_i| |xi|)``, and a backward-stable exact fit leaves
+    residuals of about ``eps (||y|| + || |Theta| |xi| ||)`` in norm.  Entries below
+    ``16 (p + 1) eps`` times the first, and whole columns below that many times the
+    second, are zero as far as the data can tell; treating them as anything else makes an
+    exact fit uncertifiable (its gradient would be a sum of rounding noise).
+    ``|Theta_i| |xi|`` enters only up to ``max |y|``: rounding from huge cancelling
+    coefficients (e.g. along collinear columns) is not forgiven, such a point is simply
+    not certified.
     """
-    c = 16 * (p + 1) * np.finfo(float).eps
-    # |Theta||xi| counts up to max|y|: rounding from huge cancelling coefficients (e.g.
-    # along collinear columns) is not forgiven, that point is simply not certified.
-    scale = np.abs(y) + np.minimum(abs_fit, np.abs(y).max(axis=0))
+    c = 16 * (xi.shape[0] + 1) * np.finfo(float).eps
+    ymax = np.abs(y).max(axis=0)
+    if np.all(np.abs(r) > 2 * c * ymax):  # above every possible bound: nothing to do
+        return r
+    abs_theta = abs_theta() if callable(abs_theta) else abs_theta
+    scale = np.abs(y) + np.minimum(abs_theta @ np.abs(xi), ymax)
     r = np.where(np.abs(r) <= c * scale, 0.0, r)
     exact = np.linalg.norm(r, axis=0) <= c * np.linalg.norm(scale, axis=0)
     return np.where(exact, 0.0, r)
@@ -113,7 +118,7 @@ def certify(
     if col_norms is None:
         col_norms = np.linalg.norm(theta, axis=0)
     r = y - theta @ xi
-    psi = huber_psi(rounding_free(r, y, np.abs(theta) @ np.abs(xi), xi.shape[0]), delta)
+    psi = huber_psi(rounding_free(r, y, lambda: np.abs(theta), xi), delta)
     g = theta.T @ psi
     obj = huber(r, delta).sum(axis=0) + (lam * np.abs(xi)).sum(axis=0)
     psi_norm = np.linalg.norm(psi, axis=0)

@@ -66,6 +66,8 @@ __all__ = [
 
 #: Criteria :func:`select` accepts.
 CRITERIA = ("bic", "cv")
+#: ADMM iteration limit per path point in :func:`select` (unless ``max_iter`` is given).
+PATH_MAX_ITER = 1000
 
 #: Tuning constant of the Huber loss with 95 % efficiency at the Gaussian.
 HUBER_EFFICIENCY_CONSTANT = 1.345
@@ -745,6 +747,10 @@ def select(
     if isinstance(delta, str) and delta == "auto":
         delta = np.atleast_1d(auto_delta(theta, y, method=method))
     delta_k = loss_delta("huber", delta, y.shape[1])
+    # Path points only propose supports, so ADMM gets fewer iterations there than in a
+    # single fit (its Newton finish certifies most points at once; near-LAD points on
+    # exact data may need thousands); the refits keep the full budget.
+    path_options = {**({"max_iter": PATH_MAX_ITER} if method == "admm" else {}), **options}
     with warnings.catch_warnings():
         # Uncertified path points only propose supports; the refits of the selection
         # stage are certified on their own, and the chosen point is checked below.
@@ -758,7 +764,7 @@ def select(
             method=method,
             solver=solver,
             progress=progress,
-            **options,
+            **path_options,
         )
     candidates = _stage_all(theta, y, full.coef, delta_k, tol, method, solver, options)
     if criterion == "bic":
@@ -781,7 +787,7 @@ def select(
                     full.lams,
                     method=method,
                     solver=solver,
-                    **options,
+                    **path_options,
                 )
             cand = _stage_all(
                 theta[train], y[train], sub.coef, delta_k, tol, method, solver, options

@@ -115,6 +115,11 @@ def _solve_sym(M: np.ndarray, b: np.ndarray) -> np.ndarray:
     return V[:, keep] @ ((V[:, keep].T @ b) * (inv if b.ndim == 1 else inv[:, None]))
 
 
+def _lstsq(a: np.ndarray, b: np.ndarray):
+    """Least squares by QR with column pivoting (LAPACK gelsy), rank cut at ``_RCOND``."""
+    return scipy.linalg.lstsq(a, b, cond=_RCOND, lapack_driver="gelsy", check_finite=False)
+
+
 def _slope(t, r, q, x, d, lam, delta):
     """Right derivative of ``phi(t) = P(x + t d)``; ``r = y - A x``, ``q = A d``.
 
@@ -181,6 +186,20 @@ def _line_search(r, q, x, d, lam, delta) -> float:
     return float(min(max(t, 0.0), _MAX_STEP))
 
 
+def _phi(t, r, q, x, d, lam, delta) -> float:
+    return float(huber(r - t * q, delta).sum() + lam @ np.abs(x + t * d))
+
+
+def _step_length(r, q, x, d, lam, delta) -> float:
+    """The full step if it decreases the objective enough (Armijo, 1e-4), else exact."""
+    s0 = _slope(0.0, r, q, x, d, lam, delta)
+    if s0 >= 0:
+        return 0.0
+    if _phi(1.0, r, q, x, d, lam, delta) <= _phi(0.0, r, q, x, d, lam, delta) + 1e-4 * s0:
+        return 1.0
+    return _line_search(r, q, x, d, lam, delta)
+
+
 def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschitz, abs_a=None):
     """Semismooth Newton on one column, globalised by an exact line search.
 
@@ -201,10 +220,9 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
     T = 1.0 / col_norms**2
     r = y - A @ x
     best = None
-    abs_a = np.abs(A) if abs_a is None else abs_a
-    p = A.shape[1]
+    abs_a = (lambda: np.abs(A)) if abs_a is None else abs_a
     for step in range(max_steps + 1):
-        psi = huber_psi(rounding_free(r, y, abs_a @ np.abs(x), p), delta)
+        psi = huber_psi(rounding_free(r, y, abs_a, x), delta)
         g = A.T @ psi
         psi_scale = np.atleast_1d(np.linalg.norm(psi))
         kkt = kkt_from_gradient(x[:, None], g[:, None], lam[:, None], col_norms, psi_scale)[0]
@@ -225,7 +243,7 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
         # The inlier least-squares part by an orthogonal factorisation (residuals of an
         # exact fit stay at rounding level), the linear terms through the Gram matrix.
         if AI.size:
-            step_s, _, rank, _ = np.linalg.lstsq(AI, y[inl], rcond=_RCOND)
+            step_s, _, rank, _ = _lstsq(AI, y[inl])
         else:
             step_s, rank = np.zeros(n_s), 0
         if rank < n_s:
@@ -235,7 +253,7 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
             # majorises the Huber loss (weights min(1, delta / |r_i|)).
             sw = np.sqrt(np.minimum(1.0, delta / np.maximum(np.abs(r), np.finfo(float).tiny)))
             AW = AS * sw[:, None]
-            step_s = np.linalg.lstsq(AW, sw * y, rcond=_RCOND)[0]
+            step_s = _lstsq(AW, sw * y)[0]
             b = -lam[S] * sigma[S]
             if np.any(b):
                 step_s += _solve_sym(AW.T @ AW, b)
@@ -254,7 +272,7 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
         cand[S] = step_s
         d = cand - x
         q = A @ d
-        t = _line_search(r, q, x, d, lam, delta)
+        t = _step_length(r, q, x, d, lam, delta)
         if t == 0.0:
             d = soft_threshold(x + g / lipschitz, lam / lipschitz) - x
             q = A @ d
@@ -273,11 +291,11 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
     # A partial line-search step leaves rounding-level entries where the optimum has
     # exact zeros; drop those the proximal-gradient map sets to zero if the certificate
     # still holds.
-    g = A.T @ huber_psi(rounding_free(y - A @ x, y, abs_a @ np.abs(x), p), delta)
+    g = A.T @ huber_psi(rounding_free(y - A @ x, y, abs_a, x), delta)
     zero = (np.abs(x + T * g) <= T * lam) & (x != 0)
     if zero.any():
         xc = np.where(zero, 0.0, x)
-        psi = huber_psi(rounding_free(y - A @ xc, y, abs_a @ np.abs(xc), p), delta)
+        psi = huber_psi(rounding_free(y - A @ xc, y, abs_a, xc), delta)
         scale = np.atleast_1d(np.linalg.norm(psi))
         kkt = kkt_from_gradient(xc[:, None], (A.T @ psi)[:, None], lam[:, None], col_norms, scale)
         if kkt[0] <= tol:
@@ -285,7 +303,7 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
     return x, True, step
 
 
-@dataclass(frozen=True)
+@dataclass
 class Prepared:
     """What ADMM and its finish compute from ``Theta`` alone (reusable along a path)."""
 
@@ -294,11 +312,17 @@ class Prepared:
     A: np.ndarray  # Theta[:, nz] / scale
     G: np.ndarray  # A^T A
     a_norms: np.ndarray
-    abs_a: np.ndarray
     lipschitz: float
     factor: tuple  # Cholesky factor of G + kappa I
     equilibrate: bool
     kappa: float
+    _abs_a: np.ndarray | None = None
+
+    def abs_a(self) -> np.ndarray:
+        """``|A|``, computed on first use (only certificates of near-exact fits need it)."""
+        if self._abs_a is None:
+            self._abs_a = np.abs(self.A)
+        return self._abs_a
 
 
 def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
@@ -310,7 +334,7 @@ def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) 
     G = A.T @ A
     lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny) if G.size else 1.0
     factor = scipy.linalg.cho_factor(G + kappa * np.eye(A.shape[1]), check_finite=False)
-    return Prepared(nz, scale, A, G, _colnorm(A), np.abs(A), lipschitz, factor, equilibrate, kappa)
+    return Prepared(nz, scale, A, G, _colnorm(A), lipschitz, factor, equilibrate, kappa)
 
 
 def solve_admm(
@@ -385,7 +409,7 @@ def solve_admm(
     nz, scale, A, G = prepared.nz, prepared.scale, prepared.A, prepared.G
     a_norms, abs_a, lipschitz, factor = (
         prepared.a_norms,
-        prepared.abs_a,
+        prepared.abs_a,  # a method: |A| is formed only if needed
         prepared.lipschitz,
         prepared.factor,
     )
