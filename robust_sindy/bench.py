@@ -175,14 +175,15 @@ def run(
 ) -> list[BenchRow]:  # fmt: skip
     """Run every solver on every ``(m, degree)`` problem; returns the rows.
 
-    CVXPY solvers get ``skip_after`` as their time limit; a solver that took about that
-    long is skipped at every larger ``m`` of the same degree, with a note.  Slow solvers
+    CVXPY solvers get ``skip_after`` as their time limit; a solver whose time at the
+    previous ``m`` of the same degree, scaled linearly in ``m``, exceeds ``skip_after``
+    is skipped, with a note.  Slow solvers
     get fewer timed runs (see :func:`time_solver`); the table reports how many.
     """
     from tqdm import tqdm
 
     rows: list[BenchRow] = []
-    too_slow: dict[tuple[str, int], int] = {}
+    last: dict[tuple[str, int], tuple[int, float]] = {}  # (solver, degree) -> (m, seconds)
     jobs = [(m, d, s) for m, d in sizes for s in solvers]
     bar = tqdm(total=len(jobs), desc="bench", disable=not progress)
     for m, degree in sizes:
@@ -198,9 +199,12 @@ def run(
             if mod and not _available(mod):
                 row.note = f"skipped: {mod} not installed (pip install 'robust-sindy[bench]')"
                 continue
-            limit_m = too_slow.get((name, degree))
-            if limit_m is not None and m > limit_m:
-                row.note = f"skipped: over {skip_after:.0f} s at m = {limit_m}"
+            prev = last.get((name, degree))
+            if prev is not None and prev[1] * m / prev[0] > skip_after:
+                row.note = (
+                    f"skipped: {prev[1]:.3g} s at m = {prev[0]} extrapolates linearly to "
+                    f"over {skip_after:.0f} s"
+                )
                 continue
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ConvergenceWarning)
@@ -216,8 +220,7 @@ def run(
             row.time, row.runs, row.peak_mb = t, runs, peak
             row.kkt = float(np.max(kkt_violation(theta, y, coef, delta=DELTA, lam=LAM)))
             row._objective = objective(theta, y, coef, delta=DELTA, lam=LAM)
-            if t >= 0.9 * skip_after:  # at or near the time limit
-                too_slow[(name, degree)] = m
+            last[(name, degree)] = (m, t)
         base = block[0].time if block[0].solver == "ADMM (fast path)" else np.nan
         found = [r._objective for r in block if r.solver in HUBER_SOLVERS and r.runs
                  and r.kkt < 1e-3]  # fmt: skip
