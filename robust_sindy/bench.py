@@ -152,6 +152,38 @@ def time_solver(f, theta, y, *, repeats: int, budget: float):
     return float(np.median(times)), len(times), coef, peak
 
 
+def _child(conn, name, theta, y, repeats, budget, limit):
+    try:
+        conn.send(time_solver(_runner(name, limit), theta, y, repeats=repeats, budget=budget))
+    except Exception as exc:  # reported by the parent
+        conn.send(exc)
+    conn.close()
+
+
+def _guarded(name, theta, y, *, repeats, budget, limit):
+    """``time_solver`` in a forked process, stopped after ``limit`` seconds.
+
+    For peers without a time limit of their own (skglm): one slow configuration must
+    not stall the whole benchmark.
+    """
+    import multiprocessing
+
+    ctx = multiprocessing.get_context("fork")
+    parent, child = ctx.Pipe(duplex=False)
+    proc = ctx.Process(target=_child, args=(child, name, theta, y, repeats, budget, limit))
+    proc.start()
+    try:
+        if not parent.poll(limit):
+            raise TimeoutError(f"no result within {limit:.0f} s (stopped)")
+        out = parent.recv()
+    finally:
+        proc.terminate()
+        proc.join()
+    if isinstance(out, Exception):
+        raise out
+    return out
+
+
 def _pass_time(theta, y, repeats=20):
     """Seconds of one ``Theta @ W`` plus one ``Theta.T @ V`` (W: p x n, V: m x n)."""
     w = np.ones((theta.shape[1], y.shape[1]))
@@ -209,11 +241,20 @@ def run(
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore", ConvergenceWarning)
                 warnings.simplefilter("ignore", UserWarning)
+                budget = max(10.0, skip_after)
                 try:
-                    t, runs, coef, peak = time_solver(
-                        _runner(name, skip_after), theta, y, repeats=repeats,
-                        budget=max(10.0, skip_after),
-                    )  # fmt: skip
+                    if name == "skglm":
+                        t, runs, coef, peak = _guarded(
+                            name, theta, y, repeats=repeats, budget=budget, limit=2 * budget
+                        )
+                    else:
+                        t, runs, coef, peak = time_solver(
+                            _runner(name, skip_after), theta, y, repeats=repeats, budget=budget
+                        )
+                except TimeoutError as exc:
+                    row.note = f"stopped: {exc}"
+                    last[(name, degree)] = (m, np.inf)
+                    continue
                 except Exception as exc:  # a peer failing is a result, not a crash
                     row.note = f"failed: {type(exc).__name__}: {exc}"[:120]
                     continue
