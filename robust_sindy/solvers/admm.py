@@ -27,11 +27,13 @@ Speed-ups, all exact (the estimator does not change):
   adapts per column by residual balancing with a bounded ``sqrt(primal / dual)`` step,
   the scaled duals rescaled and no refactorisation;
 * over-relaxation ``alpha``;
-* an active-set (semismooth) Newton finish, tried at iterations 10, 20, 40, 80, then
-  every 100, and whenever the residual tests pass: from the
-  current iterate take the inlier/outlier partition, the support and the signs, solve
-  ``Theta_IS^T Theta_IS xi_S = Theta_IS^T y_I + delta Theta_OS^T s_O - lam_S sigma_S``,
-  and safeguard with a line search on the true objective.  It terminates exactly
+* an active-set (semismooth) Newton finish, tried first (from the least-squares
+  solution or the warm start), then at iterations 10, 20, 40, 80, every 100 after, and
+  whenever the residual tests pass: from the current iterate take the inlier/outlier
+  partition, the support and the signs, solve
+  ``Theta_IS^T Theta_IS xi_S = Theta_IS^T y_I + delta Theta_OS^T s_O - lam_S sigma_S``
+  (a reweighted least-squares step when the inliers do not determine ``xi_S``), and
+  safeguard with an exact line search on the true objective.  It terminates exactly
   once the sets are identified.  Only a point whose KKT certificate is below ``tol``
   ends a column.
 
@@ -221,13 +223,17 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
     r = y - A @ x
     best = None
     abs_a = (lambda: np.abs(A)) if abs_a is None else abs_a
-    for step in range(max_steps + 1):
+
+    def gradient_and_kkt(x, r):
         psi = huber_psi(rounding_free(r, y, abs_a, x), delta)
         g = A.T @ psi
-        psi_scale = np.atleast_1d(np.linalg.norm(psi))
-        kkt = kkt_from_gradient(x[:, None], g[:, None], lam[:, None], col_norms, psi_scale)[0]
+        scale = np.atleast_1d(np.linalg.norm(psi))
+        return g, kkt_from_gradient(x[:, None], g[:, None], lam[:, None], col_norms, scale)[0]
+
+    for step in range(max_steps + 1):
+        g, kkt = gradient_and_kkt(x, r)
         if kkt <= tol and (best is None or kkt < best[1]):
-            best = (x, kkt, step)
+            best = (x, kkt, step, g)
         if kkt <= 0.1 * tol:  # a margin, so the check in the caller's units passes too
             break
         if step == max_steps:
@@ -246,6 +252,7 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
             step_s, _, rank, _ = _lstsq(AI, y[inl])
         else:
             step_s, rank = np.zeros(n_s), 0
+        b = -lam[S] * sigma[S]
         if rank < n_s:
             # Too few inliers to fix the support's coefficients (the loss is linear along
             # some direction, as in least-absolute-deviation fits): take the
@@ -254,11 +261,9 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
             sw = np.sqrt(np.minimum(1.0, delta / np.maximum(np.abs(r), np.finfo(float).tiny)))
             AW = AS * sw[:, None]
             step_s = _lstsq(AW, sw * y)[0]
-            b = -lam[S] * sigma[S]
             if np.any(b):
                 step_s += _solve_sym(AW.T @ AW, b)
         else:
-            b = -lam[S] * sigma[S]
             if out.any():
                 b += delta * (AS[out].T @ np.sign(r[out]))
             if np.any(b):
@@ -287,18 +292,14 @@ def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschit
             r = r - t * q
     if best is None:
         return x, False, step
-    x, _, step = best
+    x, _, step, g = best
     # A partial line-search step leaves rounding-level entries where the optimum has
     # exact zeros; drop those the proximal-gradient map sets to zero if the certificate
     # still holds.
-    g = A.T @ huber_psi(rounding_free(y - A @ x, y, abs_a, x), delta)
     zero = (np.abs(x + T * g) <= T * lam) & (x != 0)
     if zero.any():
         xc = np.where(zero, 0.0, x)
-        psi = huber_psi(rounding_free(y - A @ xc, y, abs_a, xc), delta)
-        scale = np.atleast_1d(np.linalg.norm(psi))
-        kkt = kkt_from_gradient(xc[:, None], (A.T @ psi)[:, None], lam[:, None], col_norms, scale)
-        if kkt[0] <= tol:
+        if gradient_and_kkt(xc, y - A @ xc)[1] <= tol:
             x = xc
     return x, True, step
 
@@ -380,8 +381,8 @@ def solve_admm(
     adaptive_rho : bool
         Balance the primal and dual residuals of each column by updating its ``rho``.
     polish : bool
-        Try the active-set Newton finish at iterations 10, 20, 40, 80, then every 100,
-        and whenever the residual tests pass.
+        Try the active-set Newton finish before any ADMM iteration, then at iterations
+        10, 20, 40, 80, every 100 after, and whenever the residual tests pass.
     max_iter : int
         ADMM iteration limit per column.
     eps_abs, eps_rel : float
