@@ -22,7 +22,7 @@ import importlib.util
 import time
 import tracemalloc
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
@@ -66,6 +66,7 @@ class BenchRow:
     peak_mb: float = np.nan
     passes: float = np.nan  # fast path only
     note: str = ""
+    objective: np.ndarray | None = field(default=None, repr=False)  # per column
 
 
 def bench_problem(m: int, degree: int = 2, seed: int = 0):
@@ -260,10 +261,10 @@ def run(
                     continue
             row.time, row.runs, row.peak_mb = t, runs, peak
             row.kkt = float(np.max(kkt_violation(theta, y, coef, delta=DELTA, lam=LAM)))
-            row._objective = objective(theta, y, coef, delta=DELTA, lam=LAM)
+            row.objective = objective(theta, y, coef, delta=DELTA, lam=LAM)
             last[(name, degree)] = (m, t)
         base = block[0].time if block[0].solver == "ADMM (fast path)" else np.nan
-        found = [r._objective for r in block if r.solver in HUBER_SOLVERS and r.runs
+        found = [r.objective for r in block if r.solver in HUBER_SOLVERS and r.runs
                  and r.kkt < 1e-3]  # fmt: skip
         best = np.min(found, axis=0) if found else None
         for r in block:
@@ -271,7 +272,7 @@ def run(
                 continue
             r.ratio = r.time / base
             if best is not None and r.solver in HUBER_SOLVERS:
-                r.gap = float(np.max((r._objective - best) / np.abs(best)))
+                r.gap = float(np.max((r.objective - best) / np.abs(best)))
             if r.solver == "PySINDy STLSQ":
                 r.note = "least squares: a different problem; gap and KKT refer to the Huber one"
         if block[0].runs:

@@ -66,6 +66,8 @@ __all__ = [
 
 #: Criteria :func:`select` accepts.
 CRITERIA = ("bic", "cv")
+#: Rounds of the selection stage (drop, refit) before the support must be stable.
+STAGE_ROUNDS = 10
 #: ADMM iteration limit per path point in :func:`select` (unless ``max_iter`` is given).
 PATH_MAX_ITER = 1000
 
@@ -190,7 +192,7 @@ def _refit_column(theta, y, keep, delta, method, solver, options) -> np.ndarray:
     return coef
 
 
-def _select_column(theta, y, coef, delta, tol, rounds, col, ynorm, refit, cache=None):
+def _select_column(coef, tol, rounds, col, ynorm, refit, cache=None):
     """The selection stage on one column (see :func:`threshold_refit`)."""
     keep = coef != 0
     for _ in range(rounds):
@@ -216,7 +218,7 @@ def threshold_refit(
     delta,
     *,
     tol: float = 0.005,
-    max_rounds: int = 10,
+    max_rounds: int = STAGE_ROUNDS,
     method: str = "admm",
     solver: str | None = None,
     **options,
@@ -248,9 +250,7 @@ def threshold_refit(
         def refit(keep, k=k):
             return _refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
 
-        coef[:, k] = _select_column(
-            theta, y[:, k], coef[:, k], delta[k], tol, rounds, col, ynorm[k], refit
-        )
+        coef[:, k] = _select_column(coef[:, k], tol, rounds, col, ynorm[k], refit)
     return coef[:, 0] if one_d else coef
 
 
@@ -661,12 +661,12 @@ def _stage_all(theta, y, path_coef, delta, tol, method, solver, options):
 
         for i in range(L):
             out[i, :, k] = _select_column(
-                theta, y[:, k], path_coef[i, :, k], delta[k], tol, 10, col, ynorm[k], refit, cache
+                path_coef[i, :, k], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache
             )
     return out
 
 
-def _pick(scores: np.ndarray, candidates: np.ndarray) -> np.ndarray:
+def _pick(scores: np.ndarray) -> np.ndarray:
     """Per column the lowest score; ties go to the sparsest (earliest) point."""
     best = np.nanmin(scores, axis=0)
     tie = scores <= best + 1e-9 * np.maximum(np.abs(best), 1.0)
@@ -794,7 +794,7 @@ def select(
             )
             r = y[test][None, :, :] - np.einsum("mp,lpn->lmn", theta[test], cand)
             scores += huber(r, delta_k).mean(axis=1) / len(folds)
-    index = _pick(scores, candidates)
+    index = _pick(scores)
     cols = np.arange(y.shape[1])
     bad = np.flatnonzero(~full.converged[index, cols])
     if bad.size:
