@@ -38,6 +38,23 @@ from robust_sindy.selection import auto_delta, lambda_max, screen_rows, select, 
 from robust_sindy.systems import Drone, Lorenz
 
 warnings.simplefilter("ignore", rs.ConvergenceWarning)  # certification is reported below
+
+
+def heat_maps(iae_grid, nnz_grid, fracs, row_labels, ylabel, title):
+    # log10 IAE and the number of nonzero coefficients over (row, lam / lambda_max)
+    fig, axes = plt.subplots(1, 2, figsize=(11, 4))
+    for ax, val, what in [(axes[0], np.log10(iae_grid), "log10 IAE"),
+                          (axes[1], nnz_grid, "nonzero coefficients (true: 7)")]:
+        im = ax.imshow(val, aspect="auto", origin="lower", cmap="viridis")
+        ax.set_xticks(range(fracs.size), [f"{f:.0e}" for f in fracs], rotation=60)
+        ax.set_yticks(range(len(row_labels)), row_labels)
+        ax.set_xlabel("lam / lambda_max(delta)")
+        ax.set_ylabel(ylabel)
+        ax.set_title(f"{title}: {what}")
+        fig.colorbar(im, ax=ax)
+    fig.tight_layout()
+
+
 lorenz = Lorenz()
 data = lorenz.generate()
 noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(0))
@@ -75,17 +92,8 @@ print(f"best IAE {grid_iae[best]:.4f} at delta {deltas[best[0]]:.0e}, "
 seven = grid_nnz == 7
 print(f"cells with 7 nonzero terms: {seven.sum()}, their smallest IAE: "
       f"{grid_iae[seven].min() if seven.any() else float('nan'):.2f}")
-fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-for ax, val, title in [(axes[0], np.log10(grid_iae), "log10 IAE"),
-                       (axes[1], grid_nnz, "nonzero coefficients (true: 7)")]:
-    im = ax.imshow(val, aspect="auto", origin="lower", cmap="viridis")
-    ax.set_xticks(range(fracs.size), [f"{f:.0e}" for f in fracs], rotation=60)
-    ax.set_yticks(range(deltas.size), [f"{d:.0e}" for d in deltas])
-    ax.set_xlabel("lam / lambda_max(delta)")
-    ax.set_ylabel("delta")
-    ax.set_title(f"Lorenz, plain Huber-Lasso: {title}")
-    fig.colorbar(im, ax=ax)
-fig.tight_layout()""",
+heat_maps(grid_iae, grid_nnz, fracs, [f"{d:.0e}" for d in deltas], "delta",
+          "Lorenz, plain Huber-Lasso")""",
     ),
     (
         "md",
@@ -162,17 +170,8 @@ for i, c in enumerate(scales):
         coef = threshold_refit(th_k, y_k, rs.fit(th_k, y_k, delta=d, lam=f * lmax).coef, d)
         stage_iae[i, j] = iae(true, coef)
         stage_nnz[i, j] = np.count_nonzero(coef)
-fig, axes = plt.subplots(1, 2, figsize=(11, 4))
-for ax, val, title in [(axes[0], np.log10(stage_iae), "log10 IAE"),
-                       (axes[1], stage_nnz, "nonzero coefficients (true: 7)")]:
-    im = ax.imshow(val, aspect="auto", origin="lower", cmap="viridis")
-    ax.set_xticks(range(fracs.size), [f"{f:.0e}" for f in fracs], rotation=60)
-    ax.set_yticks(range(scales.size), [f"{c:g}" for c in scales])
-    ax.set_xlabel("lam / lambda_max(delta)")
-    ax.set_ylabel("delta / automatic delta")
-    ax.set_title(f"screened + selection stage: {title}")
-    fig.colorbar(im, ax=ax)
-fig.tight_layout()
+heat_maps(stage_iae, stage_nnz, fracs, [f"{c:g}" for c in scales], "delta / automatic delta",
+          "screened + selection stage")
 exact = (stage_nnz == 7) & (stage_iae < 1e-2)
 print(f"cells with the 7 true terms and IAE < 0.01: {exact.sum()} of {exact.size}")""",
     ),
