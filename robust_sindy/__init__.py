@@ -13,7 +13,7 @@ from ._certificates import duality_gap, kkt_violation, objective
 from ._fit import METHODS, ConvergenceWarning, FitResult, fit
 from ._losses import huber, huber_prox, huber_psi, soft_threshold
 from .library import ConcatLibrary, CustomLibrary, PolynomialLibrary
-from .model import HuberSINDy
+from .model import Diagnostics, HuberSINDy, IdentificationWarning
 from .solvers.admm import PAPER_OPTIONS as PAPER_ADMM_OPTIONS
 
 __version__ = "0.1.0"
@@ -24,8 +24,10 @@ __all__ = [
     "ConcatLibrary",
     "ConvergenceWarning",
     "CustomLibrary",
+    "Diagnostics",
     "FitResult",
     "HuberSINDy",
+    "IdentificationWarning",
     "PolynomialLibrary",
     "differentiation",
     "duality_gap",

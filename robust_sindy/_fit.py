@@ -13,10 +13,10 @@ from ._validation import (
     as_float_array,
     check_coef,
     check_int,
+    check_lam,
     check_positive,
     check_problem,
     loss_delta,
-    per_column,
 )
 from .solvers import admm, reference, stls
 
@@ -52,8 +52,10 @@ class FitResult:
     solve_time : float
         Wall-clock seconds spent in the solver.
     method, solver, loss : str
-    delta, lam : ndarray, shape (n,)
-        The values used per column (``delta`` is inf for the squared loss).
+    delta : ndarray, shape (n,)
+        The threshold used per column (inf for the squared loss).
+    lam : ndarray, shape (n,) or (p, n)
+        The L1 weights used, per column or per term and column.
     inliers : ndarray of bool, shape (m, n) or (m,), or None
         For the Huber loss, ``|r| <= delta`` per sample and column.
     dual : ndarray, shape (m, n)
@@ -175,8 +177,10 @@ def fit(
     delta : float, array_like of shape (n,), or "auto"
         Huber threshold, > 0, one value or one per column; ``"auto"`` chooses it per
         column by :func:`robust_sindy.selection.auto_delta` (reported in ``delta``).
-    lam : float or array_like of shape (n,)
-        L1 weight, >= 0, one value or one per column.
+    lam : float, array_like of shape (n,), or array_like of shape (p, n)
+        L1 weight, >= 0: one value, one per column, or one per term and column
+        (a weighted L1 norm ``sum_j lam_jk |xi_jk|``; for a 1-D ``xdot`` a vector of
+        length ``p`` is one weight per term).
     loss : {"huber", "squared"}
     solver : {"clarabel", "osqp"}, optional
         Only for ``method="cvxpy"`` (default ``"clarabel"``).
@@ -227,7 +231,7 @@ def fit(
 
         delta = np.atleast_1d(auto_delta(theta, y))
     delta_k = loss_delta(loss, delta, n)
-    lam_k = per_column(lam, "lam", n, positive=False)
+    lam_k = check_lam(lam, theta.shape[1], n, one_d)
     if method != "cvxpy" and solver is not None:
         raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
 
@@ -258,7 +262,7 @@ def fit(
         solver_name = "ols"
     solve_time = time.perf_counter() - t0
 
-    cert = certify(theta, y, out.coef, delta_k, lam_k[None, :])
+    cert = certify(theta, y, out.coef, delta_k, lam_k if lam_k.ndim == 2 else lam_k[None, :])
     column_ok = out.converged & ((cert.kkt <= tol) | (cert.rel_gap <= gap_tol))
     if not column_ok.all():
         bad = np.flatnonzero(~column_ok).tolist()

@@ -71,6 +71,26 @@ def per_column(value, name: str, n: int, *, positive: bool) -> np.ndarray:
     return arr
 
 
+def check_lam(value, p: int, n: int, one_d: bool) -> np.ndarray:
+    """L1 weights: one value, one per column (n,), or one per coordinate (p, n).
+
+    For a 1-D target a vector of length ``p > 1`` is one weight per coordinate.  Returns
+    (n,) for a weight per column and (p, n) for per-coordinate weights.
+    """
+    if isinstance(value, str):
+        raise ValueError(f"lam must be a number, one per column or one per term; got {value!r}")
+    arr = as_float_array(value, "lam", (0, 1, 2))
+    per_term = arr.ndim == 2 or (one_d and arr.ndim == 1 and arr.shape[0] == p and p > 1)
+    if not per_term:
+        return per_column(arr, "lam", n, positive=False)
+    arr = arr.reshape(p, 1) if arr.ndim == 1 else arr
+    if arr.shape != (p, n):
+        raise ValueError(f"lam per term must have shape ({p}, {n}); got {arr.shape}")
+    if np.any(arr < 0):
+        raise ValueError("lam must be >= 0")
+    return arr.astype(np.float64)
+
+
 def loss_delta(loss: str, delta, n: int) -> np.ndarray:
     """Per-column Huber threshold; ``inf`` for the squared loss (its limit)."""
     if check_loss(loss) == "squared":

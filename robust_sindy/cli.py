@@ -103,6 +103,22 @@ def _bench(args) -> int:
     return 0
 
 
+def _zoo(args) -> int:
+    from . import zoo
+
+    if args.quick:
+        rows = zoo.run(n_systems=2, seeds=1, families=("clean", "spikes"), n_samples=600,
+                       jobs=args.jobs, progress=not args.quiet)  # fmt: skip
+    else:
+        rows = zoo.run(n_systems=args.systems, seeds=args.seeds, jobs=args.jobs,
+                       progress=not args.quiet)  # fmt: skip
+    command = "robust-sindy zoo" + (" --quick" if args.quick else f" --seeds {args.seeds}")
+    print(zoo.table(zoo.summary(rows)))
+    paths = zoo.write(rows, Path(args.out), command)
+    print("wrote", ", ".join(str(p) for p in paths))
+    return 0
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(prog="robust-sindy", description=__doc__.splitlines()[0])
     sub = parser.add_subparsers(dest="command", required=True)
@@ -122,7 +138,22 @@ def main(argv: list[str] | None = None) -> int:
         "--skip-after", type=float, default=60.0, help="skip a solver at larger sizes after (60 s)"
     )
     ben.add_argument("--quiet", action="store_true", help="no progress bar")
+    zoo_ = sub.add_parser(
+        "zoo",
+        help="identify the polynomial flows of dysts under six contaminations "
+        '(needs pip install "robust-sindy[zoo]")',
+    )
+    zoo_.add_argument("--quick", action="store_true", help="two systems, two families")
+    zoo_.add_argument("--seeds", type=int, default=1, help="seeds per case (default 1)")
+    zoo_.add_argument("--systems", type=int, default=None, help="only the first N systems")
+    zoo_.add_argument("--out", default="zoo_results", help="output folder (./zoo_results)")
+    zoo_.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
+    zoo_.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
+    if args.command == "zoo":
+        if args.seeds < 1 or args.jobs < 1 or (args.systems is not None and args.systems < 1):
+            parser.error("--seeds, --jobs and --systems must be >= 1")
+        return _zoo(args)
     if args.command == "bench":
         if args.repeats < 1:
             parser.error("--repeats must be >= 1")

@@ -9,23 +9,136 @@ identified equations.
 
 from __future__ import annotations
 
+import itertools
 import warnings
 from collections.abc import Callable
+from dataclasses import dataclass
 
 import numpy as np
 import scipy.integrate
 from sklearn.base import BaseEstimator, clone
 
 from ._fit import METHODS, fit
-from ._validation import as_float_array
-from .differentiation import finite_difference, savgol_derivative
+from ._scaling import Standardizer
+from ._validation import as_float_array, per_column
+from .differentiation import finite_difference, local_polynomial_derivative, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
+from .selection.screening import temporal_screen
 from .simulate import check_time, input_function
 
-__all__ = ["HuberSINDy"]
+__all__ = ["Diagnostics", "HuberSINDy", "IdentificationWarning"]
 
-_DIFFERENTIATION = {"finite_difference": finite_difference, "savgol": savgol_derivative}
+#: More flagged samples than this fraction and the screen's verdict is doubtful.
+MAX_FLAGGED_FRACTION = 0.3
+#: Fewer kept samples per library term than this and the selection is doubtful.
+MIN_SAMPLES_PER_TERM = 5.0
+#: Condition number of the selected terms (unit-norm columns) beyond which their
+#: coefficients are not identifiable from the data.
+MAX_CONDITION = 1e6
+
+
+class IdentificationWarning(UserWarning):
+    """The data cannot vouch for the identified model (see ``HuberSINDy.diagnostics_``)."""
+
+
+@dataclass(repr=False)
+class Diagnostics:
+    """What a fitted :class:`HuberSINDy` can and cannot vouch for.
+
+    Attributes
+    ----------
+    n_samples, n_terms : int
+        Samples (all trajectories) and library terms.
+    samples_per_term : float
+        Samples kept after screening per library term.
+    temporal_flagged_entries, temporal_flagged_samples : int
+        Entries (state, sample) the temporal screen flagged, and samples with any.
+    model_flagged_samples : int
+        Samples the model-based screen left out of the fit (``screened_``).
+    readmitted_samples : int
+        Samples flagged in time whose residuals were fine in every equation (kept).
+    screening_converged : bool
+    flagged_fraction : float
+        Fraction of the samples left out.
+    delta_over_scale : ndarray (n,)
+        ``delta_`` divided by the robust residual scale of the screen's pilot.
+    certified : ndarray of bool (n,)
+        Whether the penalised fit of each equation passed its optimality certificate.
+    condition_number : ndarray (n,)
+        Of each equation's selected terms (unit-norm columns, kept samples).
+    """
+
+    n_samples: int
+    n_terms: int
+    samples_per_term: float
+    temporal_flagged_entries: int
+    temporal_flagged_samples: int
+    model_flagged_samples: int
+    readmitted_samples: int
+    screening_converged: bool
+    flagged_fraction: float
+    delta_over_scale: np.ndarray
+    certified: np.ndarray
+    condition_number: np.ndarray
+
+    def problems(self) -> list[str]:
+        """One sentence for each reason to doubt the model (empty when there is none)."""
+        out = []
+        if self.samples_per_term < MIN_SAMPLES_PER_TERM:
+            out.append(
+                f"only {self.samples_per_term:.1f} samples per library term were fitted: the "
+                "selected terms are not reliable; use more data or a smaller library"
+            )
+        if not self.screening_converged:
+            out.append(
+                "the model-based screen did not converge (its flags kept changing): the "
+                "samples left out may be wrong; inspect screened_ and screening_"
+            )
+        if self.flagged_fraction > MAX_FLAGGED_FRACTION:
+            out.append(
+                f"{100 * self.flagged_fraction:.0f} % of the samples were flagged as "
+                "outliers: either the data are mostly corrupted or the library cannot "
+                "describe them; check the library and the data (screened_)"
+            )
+        if not self.certified.all():
+            out.append(
+                f"equations {np.flatnonzero(~self.certified).tolist()} were not certified "
+                "optimal (see result_)"
+            )
+        bad = np.flatnonzero(self.condition_number > MAX_CONDITION)
+        if bad.size:
+            conds = ", ".join(f"{c:.1e}" for c in self.condition_number[bad])
+            out.append(
+                f"equations {bad.tolist()}: the selected terms are nearly collinear on this "
+                f"data (condition numbers {conds}); "
+                "their coefficients are not identifiable from it. Use a longer or more "
+                "exciting trajectory"
+            )
+        return out
+
+    def __repr__(self) -> str:
+        lines = [
+            f"Diagnostics({self.n_samples} samples, {self.n_terms} terms, "
+            f"{self.samples_per_term:.1f} kept samples per term)",
+            f"  temporal screen: {self.temporal_flagged_entries} entries in "
+            f"{self.temporal_flagged_samples} samples",
+            f"  model screen: {self.model_flagged_samples} samples left out "
+            f"({100 * self.flagged_fraction:.1f} %), {self.readmitted_samples} readmitted, "
+            f"converged={self.screening_converged}",
+            f"  certified: {self.certified.tolist()}",
+            f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
+        ]
+        problems = self.problems()
+        lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
+        return "\n".join(lines)
+
+
+_DIFFERENTIATION = {
+    "robust": None,  # local polynomials, temporal outliers given no weight (see fit)
+    "finite_difference": finite_difference,
+    "savgol": savgol_derivative,
+}
 
 
 def _as_list(value, name: str, multiple: bool):
@@ -84,8 +197,15 @@ class HuberSINDy(BaseEstimator):
     refit : bool
         Refit each equation on its nonzero terms with ``lam = 0`` (Huber loss, same
         ``delta``): removes the shrinkage of the L1 penalty.
-    differentiation : {"finite_difference", "savgol"} or callable
-        How derivatives are obtained when ``x_dot`` is not given; a callable receives
+    differentiation : {"robust", "finite_difference", "savgol"} or callable
+        How derivatives are obtained when ``x_dot`` is not given.  ``"robust"``
+        (default): entries the temporal screen flags are replaced by their local
+        prediction and given no weight, then a local quartic over 7 samples is
+        differentiated (:func:`~robust_sindy.differentiation.local_polynomial_derivative`;
+        fourth-order accurate, mildly smoothing).  ``"finite_difference"`` (second-order)
+        and ``"savgol"`` differentiate the screened, repaired states (with
+        ``screen=False``, the raw ones: then a single outlier spoils the derivatives of its
+        neighbours, over the whole window for ``"savgol"``).  A callable receives
         ``(x, t)`` and returns an array shaped like ``x``.
     solver : str, optional
         For ``method="cvxpy"``: ``"clarabel"`` or ``"osqp"``.
@@ -144,7 +264,7 @@ class HuberSINDy(BaseEstimator):
         method: str = "admm",
         threshold: float | None = None,
         refit: bool = False,
-        differentiation: str | Callable = "finite_difference",
+        differentiation: str | Callable = "robust",
         solver: str | None = None,
         solver_options: dict | None = None,
         progress: bool = False,
@@ -232,6 +352,9 @@ class HuberSINDy(BaseEstimator):
                 f"differentiation must be one of {tuple(_DIFFERENTIATION)} or a callable; "
                 f"got {how!r}"
             )
+        if _is_robust(how):
+            screen = temporal_screen(x, t)
+            return local_polynomial_derivative(screen.repaired, t, mask=~screen.flags)
         return _DIFFERENTIATION[how](x, t)
 
     # ------------------------------------------------------------------ fitting
@@ -254,6 +377,7 @@ class HuberSINDy(BaseEstimator):
         """
         if self.method not in METHODS:
             raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
+        self._check_selection_params()
         xs, ts, ds, us = self._trajectories(x, t, x_dot, u, need_t=False)
         n = xs[0].shape[1]
         q = 0 if us is None else us[0].shape[1]
@@ -267,35 +391,63 @@ class HuberSINDy(BaseEstimator):
                 f"feature_names has {len(feature_names)} names but there are {n} states "
                 f"and {q} controls: give one name per state, then per control"
             )
-        if ds is None:
-            ds = [self._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
         self.n_control_features_ = q
         self.feature_names_ = feature_names
-        z = np.vstack([self._inputs(a, None if us is None else b) for a, b in _pairs(xs, us)])
         self.library_ = clone(self.library) if self.library is not None else PolynomialLibrary()
+        z = np.vstack([self._inputs(a, None if us is None else b) for a, b in _pairs(xs, us)])
         theta = self.library_.fit_transform(z, input_names=feature_names)
-        y = np.vstack(ds)
+        m, p = theta.shape
+        if m <= p:
+            raise ValueError(
+                f"x has {m} samples but the library has {p} terms: at least {p + 1} samples "
+                "are needed to fit it (use a smaller library or more data)"
+            )
 
+        # 1. Temporal screen of the states (model-free), per trajectory and component.
+        self.temporal_ = None
+        entry_flags = np.zeros((m, n), dtype=bool)
+        if self.screen:
+            self.temporal_ = temporal_screen(xs, ts)
+            entry_flags = self.temporal_.flags
+        # 2. Derivatives of the (repaired) states when not measured.
+        if ds is None:
+            ds = self._derivatives(xs, ts, entry_flags)
+        y = np.vstack(ds)
+        if not np.all(np.isfinite(y)):
+            raise ValueError("the derivatives contain NaN or inf")
+
+        # 3. Every decision on standardised library columns and targets.
+        scaler = self.standardizer_ = Standardizer.from_data(theta, y)
+        th_s, y_s = scaler.theta(theta), scaler.y(y)
         options = dict(self.solver_options or {})
-        self._check_selection_params()
         huber_method = self.method if self.method in ("admm", "cvxpy") else "admm"
-        keep = np.ones(theta.shape[0], dtype=bool)
+        keep = np.ones(m, dtype=bool)
         self.screening_ = None
         if self.screen:
-            self.screening_ = screen_rows(theta, y, method=huber_method)
+            self.screening_ = screen_rows(
+                th_s,
+                y_s,
+                start=~entry_flags.any(axis=1),
+                segments=_segments(xs),
+                method=huber_method,
+            )
             keep = ~self.screening_.outliers
         self.screened_ = ~keep
-        th, yk = theta[keep], y[keep]
-        delta = auto_delta(th, yk, method=huber_method) if _is_auto(self.delta) else self.delta
+        th, yk = th_s[keep], y_s[keep]
         self.path_ = self.selection_ = None
         if _is_auto(self.lam):
+            delta_s = auto_delta(th, yk, method=huber_method) if _is_auto(self.delta) else None
+            if delta_s is None:
+                delta_s = per_column(self.delta, "delta", y.shape[1], positive=True)
+                delta_s = delta_s / scaler.y_scale
             sel = select(
                 th,
                 yk,
-                delta,
+                delta_s,
                 criterion=self.criterion,
                 n_lams=self.n_lams,
                 tol=self.selection_tol,
+                segments=_segments_of(keep, xs),
                 method=self.method,
                 solver=self.solver,
                 progress=self.progress,
@@ -303,16 +455,24 @@ class HuberSINDy(BaseEstimator):
             )
             self.selection_, self.path_ = sel, sel.path
             cols = np.arange(y.shape[1])
-            start = sel.path.coef[sel.index, :, cols].T
-            if self.method == "admm":
-                options = {**options, "warm_start": start}
-            res = fit(th, yk, self.method, sel.delta, sel.lam, solver=self.solver, **options)
-            options.pop("warm_start", None)
-            coef = sel.coef.copy()
+            delta_u = scaler.delta_to_user(sel.delta)
+            lam_u = scaler.lam_to_user(sel.lam)
+            start = scaler.coef_to_user(sel.path.coef[sel.index, :, cols].T)
+            coef = scaler.coef_to_user(sel.coef)
         else:
-            res = fit(th, yk, self.method, delta, self.lam, solver=self.solver, **options)
-            coef = res.coef.copy()
-        coef = coef.reshape(theta.shape[1], -1)
+            delta_u = (
+                np.atleast_1d(auto_delta(th, yk, method=huber_method)) * scaler.y_scale
+                if _is_auto(self.delta)
+                else self.delta
+            )
+            lam_u, start = self.lam, None
+        # The penalised fit in user units (the certificates of the chosen point).
+        if start is not None and self.method == "admm":
+            options = {**options, "warm_start": start}
+        res = fit(theta[keep], y[keep], self.method, delta_u, lam_u, solver=self.solver, **options)
+        options.pop("warm_start", None)
+        if start is None:
+            coef = res.coef.reshape(p, -1).copy()
         self.result_ = res
         self.delta_ = res.delta
         self.lam_ = res.lam
@@ -321,12 +481,26 @@ class HuberSINDy(BaseEstimator):
                 raise ValueError(f"threshold must be a finite number >= 0; got {self.threshold}")
             coef[np.abs(coef) < self.threshold] = 0.0
         if self.refit:
-            coef = self._refit(th, yk, coef, options)
+            coef = self._refit(theta[keep], y[keep], coef, options)
         self.coef_ = coef.T
         self.support_ = self.coef_ != 0
         self.outliers_ = np.abs(y - theta @ coef) > self.delta_
-        self._check_conditioning(th)
+        self.diagnostics_ = self._diagnose(th_s[keep], entry_flags)
+        self._warn(self.diagnostics_)
         return self
+
+    def _derivatives(self, xs, ts, entry_flags):
+        """Derivatives per trajectory: of the repaired states, outliers given no weight."""
+        if self.temporal_ is None:
+            return [self._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
+        out = []
+        for seg, ti in zip(_segments(xs), ts, strict=True):
+            repaired = self.temporal_.repaired[seg]
+            if _is_robust(self.differentiation):
+                out.append(local_polynomial_derivative(repaired, ti, mask=~entry_flags[seg]))
+            else:
+                out.append(self._differentiate(repaired, ti))
+        return out
 
     def _check_selection_params(self):
         if not isinstance(self.screen, bool):
@@ -360,22 +534,38 @@ class HuberSINDy(BaseEstimator):
             **options,
         )
 
-    def _check_conditioning(self, theta):
-        for k in range(self.coef_.shape[0]):
-            keep = self.coef_[k] != 0
-            if keep.sum() < 2:
-                continue
-            a = theta[:, keep] / np.linalg.norm(theta[:, keep], axis=0)
-            cond = np.linalg.cond(a)
-            if cond > 1e6:
-                names = [f for f, s in zip(self.get_feature_names(), keep, strict=True) if s]
-                warnings.warn(
-                    f"equation {k}: the selected terms {names} are nearly collinear on this "
-                    f"data (condition number {cond:.1e}); their coefficients are not "
-                    "identifiable from it. Use a longer or more exciting trajectory.",
-                    UserWarning,
-                    stacklevel=3,
-                )
+    def _diagnose(self, theta_kept, entry_flags) -> Diagnostics:
+        """What the fit can and cannot vouch for (see :class:`Diagnostics`)."""
+        m, p = self.screened_.size, theta_kept.shape[1]
+        cond = np.ones(self.coef_.shape[0])
+        for k, row in enumerate(self.coef_):
+            keep = row != 0
+            if keep.sum() >= 2:
+                a = theta_kept[:, keep]
+                cond[k] = np.linalg.cond(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300))
+        s = self.screening_
+        return Diagnostics(
+            n_samples=m,
+            n_terms=p,
+            samples_per_term=float((~self.screened_).sum() / p),
+            temporal_flagged_entries=int(entry_flags.sum()),
+            temporal_flagged_samples=int(entry_flags.any(axis=1).sum()),
+            model_flagged_samples=int(self.screened_.sum()),
+            readmitted_samples=int((entry_flags.any(axis=1) & ~self.screened_).sum()),
+            screening_converged=True if s is None else bool(s.converged),
+            flagged_fraction=float(self.screened_.mean()),
+            delta_over_scale=(
+                np.full(self.coef_.shape[0], np.nan)
+                if s is None
+                else self.delta_ / (s.scale * self.standardizer_.y_scale)
+            ),
+            certified=np.asarray(self.result_.column_converged, dtype=bool),
+            condition_number=cond,
+        )
+
+    def _warn(self, d: Diagnostics) -> None:
+        for message in d.problems():
+            warnings.warn(message, IdentificationWarning, stacklevel=3)
 
     # ------------------------------------------------------------------ using the model
     def _check_fitted(self, what: str):
@@ -484,6 +674,21 @@ def _matching(values, name: str, xs: list, multiple: bool) -> list | None:
 
 def _pairs(xs, us):
     return zip(xs, [None] * len(xs) if us is None else us, strict=True)
+
+
+def _segments(xs) -> list[slice]:
+    edges = np.cumsum([0] + [len(a) for a in xs])
+    return [slice(a, b) for a, b in itertools.pairwise(edges)]
+
+
+def _segments_of(keep: np.ndarray, xs) -> list[slice]:
+    """The trajectories' slices among the kept samples."""
+    counts = [int(keep[seg].sum()) for seg in _segments(xs)]
+    return _segments([np.empty(c) for c in counts])
+
+
+def _is_robust(value) -> bool:
+    return isinstance(value, str) and value == "robust"
 
 
 def _is_auto(value) -> bool:

@@ -10,7 +10,7 @@ paper's library and fit the paper's equations by
 * ``Huber, paper ADMM`` — delta = 1, lam = 1, the paper's ADMM settings (rho = 1, no
   equilibration, no adaptation, no finish, 5000 iterations);
 * ``Huber, certified`` — the same problem solved to a certified optimum;
-* ``Huber, auto`` — nothing chosen by hand: gross-outlier samples screened out
+* ``Huber, auto`` — ``HuberSINDy()`` as a user runs it: outlier samples screened out
   (:func:`robust_sindy.selection.screen_rows`), delta by the robust-scale rule
   (:func:`robust_sindy.selection.auto_delta`), lam per equation by the robust BIC over a
   50-point path with the selection stage at every point
@@ -29,8 +29,8 @@ import numpy as np
 
 from ._fit import ConvergenceWarning, fit
 from .metrics import iae, support_scores
+from .model import HuberSINDy
 from .noise import contaminate
-from .selection import auto_delta, screen_rows, select
 from .solvers.admm import PAPER_OPTIONS
 from .systems import Drone, Lorenz
 
@@ -101,11 +101,16 @@ PAPER = {
 }  # fmt: skip
 
 
-def problem(system: str, seed: int, t_end: float = 10.0, placement: str = "states"):
-    """Library matrix, targets, true coefficients and contaminated rows of one run."""
+def _data(system: str, seed: int, t_end: float, placement: str):
     sys_ = SYSTEMS[system]
     data = sys_.generate(t_end=t_end)
     noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(seed), placement=placement)
+    return sys_, data, noisy
+
+
+def problem(system: str, seed: int, t_end: float = 10.0, placement: str = "states"):
+    """Library matrix, targets, true coefficients and contaminated rows of one run."""
+    sys_, data, noisy = _data(system, seed, t_end, placement)
     z = noisy.x if data.u is None else np.hstack([noisy.x, data.u])
     theta = sys_.fitted_library().transform(z)
     return theta, noisy.x_dot[:, list(sys_.targets)], sys_.true_coef(), noisy.outliers
@@ -114,6 +119,8 @@ def problem(system: str, seed: int, t_end: float = 10.0, placement: str = "state
 def run_seed(system: str, seed: int, t_end: float = 10.0, placement: str = "states") -> dict:
     """Fit every method on one seed; return coefficients, IAE, support and convergence."""
     theta, y, true, outliers = problem(system, seed, t_end, placement)
+    sys_, data, noisy = _data(system, seed, t_end, placement)
+    targets = list(sys_.targets)
     out = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)  # recorded in "converged"
@@ -124,12 +131,13 @@ def run_seed(system: str, seed: int, t_end: float = 10.0, placement: str = "stat
         out["Huber, paper ADMM"] = (paper.coef, paper.converged)
         cert = fit(theta, y, delta=1.0, lam=1.0)
         out["Huber, certified"] = (cert.coef, cert.converged)
-        screen = screen_rows(theta, y)
-        keep = ~screen.outliers
-        delta = np.atleast_1d(auto_delta(theta[keep], y[keep]))
-        sel = select(theta[keep], y[keep], delta)
-        cols = np.arange(y.shape[1])
-        out["Huber, auto"] = (sel.coef, bool(sel.path.converged[sel.index, cols].all()))
+        # HuberSINDy() exactly as a user runs it, on the states (and inputs) of the run.
+        model = HuberSINDy(library=sys_.library())
+        model.fit(noisy.x, data.t, x_dot=noisy.x_dot, u=data.u, feature_names=sys_.input_names)
+        out["Huber, auto"] = (
+            model.coef_[targets].T,
+            bool(model.diagnostics_.certified[targets].all()),
+        )
     rows = {}
     for name, (coef, converged) in out.items():
         rows[name] = {
@@ -142,10 +150,10 @@ def run_seed(system: str, seed: int, t_end: float = 10.0, placement: str = "stat
     return {
         "system": system,
         "seed": seed,
-        "delta_auto": delta,
-        "lam_auto": sel.lam,
-        "flagged": int(screen.outliers.sum()),
-        "flagged_true": int((screen.outliers & outliers).sum()),
+        "delta_auto": model.delta_[targets],
+        "lam_auto": model.selection_.lam[targets],
+        "flagged": int(model.screened_.sum()),
+        "flagged_true": int((model.screened_ & outliers).sum()),
         "n_outliers": int(outliers.sum()),
         "m": int(theta.shape[0]),
         "methods": rows,

@@ -133,7 +133,7 @@ def test_screen_flags_the_contaminated_samples():
     assert s.converged
     assert np.all(s.outliers[noisy.outliers])  # every contaminated sample
     assert np.mean(s.outliers[~noisy.outliers]) < 0.06  # few clean ones
-    assert s.trusted.all()
+    assert s.start.all()
 
 
 def test_screen_finds_bad_leverage_rows_in_the_drone():
@@ -164,7 +164,8 @@ def test_huber_sindy_defaults_recover_lorenz_from_contaminated_states(seed):
     assert model.screened_.shape == (data.t.size,)
     assert np.all(model.screened_[noisy.outliers])
     assert model.path_.coef.shape == (50, 10, 3)
-    assert model.lam_.shape == (3,) and np.all(model.lam_ > 0)
+    # lam on standardised coefficients: in user units one weight per term and equation
+    assert model.lam_.shape == (10, 3) and np.all(model.lam_ > 0)
 
 
 def test_huber_sindy_defaults_recover_the_drone_from_contaminated_states():

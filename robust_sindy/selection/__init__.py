@@ -1,0 +1,64 @@
+"""Choosing delta and lambda.
+
+* :func:`lambda_max` — per column, the smallest ``lam`` whose solution is all zeros:
+  ``xi = 0`` is optimal iff ``|Theta_j^T psi_delta(xdot)| <= lam`` for every ``j``.
+* :func:`auto_delta` — the robust-statistics rule ``delta = 1.345 sigma_hat`` with
+  ``sigma_hat`` the MAD-based scale (:func:`robust_scale`) of the residuals of an
+  unpenalised Huber pilot fit, iterated: 95 % efficiency at Gaussian residuals,
+  bounded influence beyond.
+* :func:`screen_rows` — flags whole samples whose pilot residual is gross in any
+  well-fitted equation (errors in the library rows are bad-leverage points that no
+  ``delta`` can down-weight).
+* :func:`path` — a warm-started decreasing ``lam`` grid from :func:`lambda_max`, one
+  factorisation for the whole path, every point certified.
+* :func:`threshold_refit` — the selection stage: drop terms of small relative
+  contribution, refit the rest by Huber with ``lam = 0``, until the support is stable.
+* :func:`select` — runs the path, the selection stage at every point, and picks
+  ``lam`` per equation by a robust BIC (:func:`information_criterion`) or by blocked
+  cross-validation (:func:`blocked_folds`) scored with the Huber loss.
+
+Examples
+--------
+>>> import numpy as np
+>>> rng = np.random.default_rng(0)
+>>> theta = rng.normal(size=(2000, 4))
+>>> xdot = theta @ np.array([1.0, -2.0, 0.0, 0.5]) + 0.1 * rng.normal(size=2000)
+>>> bad = rng.choice(2000, 400, replace=False)
+>>> xdot[bad] += rng.normal(scale=20.0, size=400)      # 20 % gross outliers
+>>> sigma = auto_delta(theta, xdot) / 1.345
+>>> bool(abs(sigma - 0.1) < 0.02)
+True
+"""
+
+from .criteria import (
+    CRITERIA,
+    Selection,
+    blocked_folds,
+    correlation_time,
+    information_criterion,
+    select,
+)
+from .path import PATH_MAX_ITER, Path, lambda_max, path
+from .refit import STAGE_ROUNDS, threshold_refit
+from .scale import HUBER_EFFICIENCY_CONSTANT, auto_delta, robust_scale
+from .screening import Screening, screen_rows
+
+__all__ = [
+    "CRITERIA",
+    "HUBER_EFFICIENCY_CONSTANT",
+    "PATH_MAX_ITER",
+    "STAGE_ROUNDS",
+    "Path",
+    "Screening",
+    "Selection",
+    "auto_delta",
+    "blocked_folds",
+    "correlation_time",
+    "information_criterion",
+    "lambda_max",
+    "path",
+    "robust_scale",
+    "screen_rows",
+    "select",
+    "threshold_refit",
+]

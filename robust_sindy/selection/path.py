@@ -1,0 +1,201 @@
+"""``lambda_max`` and the warm-started ``lam`` path."""
+
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass
+
+import numpy as np
+from tqdm import tqdm
+
+from .._certificates import certify
+from .._fit import ConvergenceWarning, _admm_options, fit
+from .._losses import huber_psi
+from .._validation import as_float_array, check_int, check_positive, check_problem, loss_delta
+from ..solvers import admm
+from .scale import _check_method, auto_delta
+
+__all__ = ["PATH_MAX_ITER", "Path", "lambda_max", "path"]
+
+#: ADMM iteration limit per path point in :func:`select` (unless ``max_iter`` is given).
+PATH_MAX_ITER = 1000
+
+
+def lambda_max(theta, xdot, delta=1.0, loss: str = "huber") -> np.ndarray | float:
+    """Smallest ``lam`` per column for which ``coef = 0`` solves the problem.
+
+    Returns an array (n,), or a float when ``xdot`` is 1-D.
+    """
+    theta, y, one_d = check_problem(theta, xdot)
+    d = loss_delta(loss, delta, y.shape[1])
+    out = np.abs(theta.T @ huber_psi(y, d)).max(axis=0)
+    return float(out[0]) if one_d else out
+
+
+@dataclass(repr=False)
+class Path:
+    """Solutions along a decreasing ``lam`` grid (:func:`path`).
+
+    Attributes
+    ----------
+    lams : ndarray, shape (L, n)
+        The grid per target column, decreasing.
+    coef : ndarray, shape (L, p, n)
+    objective, kkt : ndarray, shape (L, n)
+        Objective and relative KKT violation of every point.
+    n_nonzero : ndarray of int, shape (L, n)
+    converged : ndarray of bool, shape (L, n)
+        Whether each point is certified.
+    delta, lambda_max : ndarray, shape (n,)
+    solve_time : float
+        Seconds for the whole path.
+    """
+
+    lams: np.ndarray
+    coef: np.ndarray
+    objective: np.ndarray
+    kkt: np.ndarray
+    n_nonzero: np.ndarray
+    converged: np.ndarray
+    delta: np.ndarray
+    lambda_max: np.ndarray
+    solve_time: float
+
+    def __repr__(self) -> str:
+        return (
+            f"Path({self.lams.shape[0]} points x {self.lams.shape[1]} columns, "
+            f"certified {int(self.converged.sum())}/{self.converged.size}, "
+            f"max kkt={self.kkt.max():.1e}, solve_time={self.solve_time:.3g}s)"
+        )
+
+
+def _grid(lmax, lams, n_lams, eps, n):
+    if lams is None:
+        n_lams = check_int(n_lams, "n_lams", 1)
+        eps = check_positive(eps, "eps", upper=1.0)
+        return lmax[None, :] * np.logspace(0.0, np.log10(eps), n_lams)[:, None]
+    grid = as_float_array(lams, "lams", (1, 2))
+    grid = np.repeat(grid[:, None], n, axis=1) if grid.ndim == 1 else grid
+    if grid.shape[1] != n:
+        raise ValueError(f"lams must have shape (L,) or (L, {n}); got {grid.shape}")
+    if (grid < 0).any():
+        raise ValueError("lams must be >= 0")
+    if (np.diff(grid, axis=0) > 0).any():
+        raise ValueError("lams must be decreasing down each column (the path is warm-started)")
+    return grid
+
+
+def path(
+    theta,
+    xdot,
+    delta=1.0,
+    lams=None,
+    n_lams: int = 50,
+    eps: float = 1e-4,
+    *,
+    method: str = "admm",
+    solver: str | None = None,
+    warm_start: bool = True,
+    progress: bool = False,
+    **options,
+) -> Path:
+    """Solve the Huber-Lasso along a decreasing grid of ``lam``.
+
+    The default grid has ``n_lams`` points from ``lambda_max`` (where the solution is
+    zero) down to ``eps * lambda_max``, log-spaced, per column.  With
+    ``method="admm"`` the library is equilibrated and factorised once, and each point
+    starts from the previous solution and its dual (``warm_start=False`` solves every
+    point cold, for comparison).  ``method="cvxpy"`` solves every point with the
+    reference solver.
+
+    Parameters
+    ----------
+    theta : array_like, shape (m, p)
+    xdot : array_like, shape (m,) or (m, n)
+    delta : float, array_like (n,), or "auto"
+    lams : array_like, shape (L,) or (L, n), optional
+        Decreasing grid (overrides ``n_lams`` and ``eps``).
+    n_lams : int
+    eps : float in (0, 1)
+    method : {"admm", "cvxpy"}
+    solver : {"clarabel", "osqp"}, optional
+        For ``method="cvxpy"``.
+    warm_start : bool
+    progress : bool
+        Show a progress bar.
+    **options
+        Options of :func:`robust_sindy.fit` for the chosen method (not ``warm_start``).
+
+    Returns
+    -------
+    Path
+
+    Warns
+    -----
+    ConvergenceWarning
+        When points could not be certified.
+    """
+    theta, y, _ = check_problem(theta, xdot)
+    _check_method(method, "the path")
+    if not isinstance(warm_start, bool):
+        raise ValueError(f"warm_start must be True or False; got {warm_start!r}")
+    if "warm_start" in options:
+        raise ValueError("warm_start is set by path itself (True or False)")
+    n = y.shape[1]
+    if isinstance(delta, str) and delta == "auto":
+        delta = np.atleast_1d(auto_delta(theta, y, method=method))
+    delta_k = loss_delta("huber", delta, n)
+    lmax = np.atleast_1d(lambda_max(theta, y, delta_k))
+    grid = _grid(lmax, lams, n_lams, eps, n)
+    L, p = grid.shape[0], theta.shape[1]
+    coef = np.zeros((L, p, n))
+    obj, kkt = np.zeros((L, n)), np.zeros((L, n))
+    conv = np.zeros((L, n), dtype=bool)
+    t0 = time.perf_counter()
+    if method == "admm":
+        if solver is not None:
+            raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
+        opts = _admm_options(options, theta, y, False, "huber")
+        opts.pop("warm_start")
+        prepared = admm.prepare(theta, equilibrate=opts["equilibrate"], kappa=opts["kappa"])
+        col_norms = np.linalg.norm(theta, axis=0)
+        previous = None
+        for i in tqdm(range(L), desc="lam path", disable=not progress, leave=False):
+            out = admm.solve_admm(
+                theta, y, delta_k, grid[i], warm_start=previous, prepared=prepared, **opts
+            )
+            cert = certify(theta, y, out.coef, delta_k, grid[i][None, :], col_norms)
+            coef[i], obj[i], kkt[i] = out.coef, cert.objective, cert.kkt
+            conv[i] = out.converged & (
+                (cert.kkt <= opts["tol"]) | (cert.rel_gap <= opts["gap_tol"])
+            )
+            if warm_start:
+                previous = (out.coef, cert.psi)
+    else:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            for i in tqdm(range(L), desc="lam path", disable=not progress, leave=False):
+                res = fit(theta, y, "cvxpy", delta_k, grid[i], solver=solver, **options)
+                coef[i], obj[i], kkt[i] = res.coef, res.objective, res.kkt
+                conv[i] = res.column_converged
+    elapsed = time.perf_counter() - t0
+    if not conv.all():
+        warnings.warn(
+            f"{int((~conv).sum())} of {conv.size} path points were not certified "
+            f"(largest relative KKT {kkt[~conv].max():.1e}); see Path.converged. "
+            "Try method='cvxpy' or a larger delta.",
+            ConvergenceWarning,
+            stacklevel=2,
+        )
+    return Path(
+        lams=grid,
+        coef=coef,
+        objective=obj,
+        kkt=kkt,
+        n_nonzero=np.count_nonzero(coef, axis=1),
+        converged=conv,
+        delta=delta_k,
+        lambda_max=lmax,
+        solve_time=elapsed,
+    )

@@ -1,0 +1,47 @@
+"""The zoo: dysts' polynomial flows, their true coefficients, one case, the quick command."""
+
+import numpy as np
+import pytest
+
+from robust_sindy import zoo
+from robust_sindy.cli import main
+
+
+@pytest.fixture(scope="module")
+def systems():
+    return {s.name: s for s in zoo.polynomial_systems()}
+
+
+def test_the_polynomial_flows_are_found_with_their_coefficients(systems):
+    assert len(systems) >= 70
+    lorenz = systems["Lorenz"]
+    assert lorenz.degree == 2 and lorenz.n_states == 3
+    # dysts' Lorenz: sigma 10, rho 28, beta 2.667 on (1, x, y, z, x^2, ..., z^2).
+    assert np.isclose(lorenz.coef[1, 0], -10) and np.isclose(lorenz.coef[2, 0], 10)
+    assert np.isclose(lorenz.coef[1, 1], 28) and np.isclose(lorenz.coef[6, 1], -1)
+    assert np.isclose(lorenz.coef[3, 2], -2.667) and np.isclose(lorenz.coef[5, 2], 1)
+    assert np.count_nonzero(lorenz.coef) == 7
+
+
+@pytest.mark.parametrize("family", zoo.FAMILIES)
+def test_contamination_families_mark_what_they_change(family):
+    rng = np.random.default_rng(0)
+    x = np.cumsum(rng.normal(size=(500, 3)), axis=0)
+    noisy, bad = zoo.contaminate_family(x, family, rng)
+    assert noisy.shape == x.shape
+    big = np.abs(noisy - x) > 0.05 * x.std(axis=0)
+    assert not (big & ~bad).any() or family == "heavy"
+    assert bad.any() == (family not in ("clean", "heavy"))
+
+
+def test_huber_sindy_identifies_a_zoo_case_exactly(systems):
+    rows = zoo.run_case(systems["Lorenz"], "spikes", "exact", 0, methods=("huber",), n_samples=800)
+    assert rows[0]["exact"] and rows[0]["iae"] < 0.05
+
+
+def test_zoo_quick_command_writes_its_report(tmp_path):
+    assert main(["zoo", "--quick", "--out", str(tmp_path), "--quiet", "--jobs", "1"]) == 0
+    text = (tmp_path / "zoo.md").read_text()
+    assert "| clean | exact |" in text
+    assert (tmp_path / "zoo.png").stat().st_size > 0
+    assert len((tmp_path / "zoo.csv").read_text().splitlines()) == 1 + 2 * 2 * 2 * 4
