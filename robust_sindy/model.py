@@ -676,15 +676,19 @@ def _pairs(xs, us):
     return zip(xs, [None] * len(xs) if us is None else us, strict=True)
 
 
-def _segments(xs) -> list[slice]:
-    edges = np.cumsum([0] + [len(a) for a in xs])
+def _slices(lengths) -> list[slice]:
+    edges = np.cumsum([0, *lengths])
     return [slice(a, b) for a, b in itertools.pairwise(edges)]
+
+
+def _segments(xs) -> list[slice]:
+    """Each trajectory's slice of the stacked samples."""
+    return _slices(len(a) for a in xs)
 
 
 def _segments_of(keep: np.ndarray, xs) -> list[slice]:
     """The trajectories' slices among the kept samples."""
-    counts = [int(keep[seg].sum()) for seg in _segments(xs)]
-    return _segments([np.empty(c) for c in counts])
+    return _slices(int(keep[seg].sum()) for seg in _segments(xs))
 
 
 def _is_robust(value) -> bool:

@@ -108,18 +108,21 @@ def _data(system: str, seed: int, t_end: float, placement: str):
     return sys_, data, noisy
 
 
-def problem(system: str, seed: int, t_end: float = 10.0, placement: str = "states"):
-    """Library matrix, targets, true coefficients and contaminated rows of one run."""
-    sys_, data, noisy = _data(system, seed, t_end, placement)
+def _problem(sys_, data, noisy):
     z = noisy.x if data.u is None else np.hstack([noisy.x, data.u])
     theta = sys_.fitted_library().transform(z)
     return theta, noisy.x_dot[:, list(sys_.targets)], sys_.true_coef(), noisy.outliers
 
 
+def problem(system: str, seed: int, t_end: float = 10.0, placement: str = "states"):
+    """Library matrix, targets, true coefficients and contaminated rows of one run."""
+    return _problem(*_data(system, seed, t_end, placement))
+
+
 def run_seed(system: str, seed: int, t_end: float = 10.0, placement: str = "states") -> dict:
     """Fit every method on one seed; return coefficients, IAE, support and convergence."""
-    theta, y, true, outliers = problem(system, seed, t_end, placement)
     sys_, data, noisy = _data(system, seed, t_end, placement)
+    theta, y, true, outliers = _problem(sys_, data, noisy)
     targets = list(sys_.targets)
     out = {}
     with warnings.catch_warnings():
