@@ -85,6 +85,9 @@ class Standardizer:
     def coef_to_user(self, coef_s: np.ndarray) -> np.ndarray:
         return coef_s * self.y_scale / self.theta_scale[:, None]
 
+    def coef_to_standard(self, coef: np.ndarray) -> np.ndarray:
+        return coef * self.theta_scale[:, None] / self.y_scale
+
     def delta_to_user(self, delta_s: np.ndarray) -> np.ndarray:
         return delta_s * self.y_scale
 

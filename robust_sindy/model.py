@@ -24,6 +24,7 @@ from ._validation import as_float_array, per_column
 from .differentiation import finite_difference, local_polynomial_derivative, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
+from .selection.path import PATH_MAX_ITER
 from .selection.screening import temporal_screen
 from .simulate import check_time, input_function
 
@@ -36,6 +37,15 @@ MIN_SAMPLES_PER_TERM = 5.0
 #: Condition number of the selected terms (unit-norm columns) beyond which their
 #: coefficients are not identifiable from the data.
 MAX_CONDITION = 1e6
+#: Stability check: the kept samples are cut into this many contiguous blocks in time
+#: and the selected terms refitted with each block left out; a term is unstable when a
+#: refit changes its sign or moves it by more than ``STABILITY_TOLERANCE`` of its value.
+STABILITY_BLOCKS = 4
+STABILITY_TOLERANCE = 0.5
+#: Noise of the library (the states' noise carried through it) relative to its signal
+#: along its least-excited direction beyond which the errors in the variables decide
+#: which terms are selected.
+MAX_LIBRARY_NOISE = 0.15
 
 
 class IdentificationWarning(UserWarning):
@@ -67,6 +77,18 @@ class Diagnostics:
         Whether the penalised fit of each equation passed its optimality certificate.
     condition_number : ndarray (n,)
         Of each equation's selected terms (unit-norm columns, kept samples).
+    library_noise : float
+        The states' noise (measured by the temporal screen) carried through the
+        library, relative to the library's signal, along its least-excited direction
+        (kept samples, standardised columns, first-order propagation); NaN without the
+        screen.  Near or above ``MAX_LIBRARY_NOISE`` the noise in the library columns
+        themselves (errors in the variables, which no loss on the derivatives can
+        remove) is large enough to select spurious terms or bias the coefficients.
+    unstable : ndarray of bool (n, p)
+        Selected terms whose coefficient changes sign, or by more than
+        ``STABILITY_TOLERANCE`` of its value, when one of ``STABILITY_BLOCKS``
+        contiguous blocks of the kept samples is left out of the refit: the data do not
+        pin them down (a spurious term, or a true one the data barely excite).
     """
 
     n_samples: int
@@ -81,6 +103,8 @@ class Diagnostics:
     delta_over_scale: np.ndarray
     certified: np.ndarray
     condition_number: np.ndarray
+    library_noise: float
+    unstable: np.ndarray
 
     def problems(self) -> list[str]:
         """One sentence for each reason to doubt the model (empty when there is none)."""
@@ -115,6 +139,26 @@ class Diagnostics:
                 "their coefficients are not identifiable from it. Use a longer or more "
                 "exciting trajectory"
             )
+        if self.library_noise > MAX_LIBRARY_NOISE:
+            out.append(
+                f"the noise of the states, carried through the library, is "
+                f"{100 * self.library_noise:.0f} % of the library's signal along its "
+                "least-excited direction: terms that differ along it cannot be told apart "
+                "(errors in the variables, which measured derivatives do not remove), so "
+                "the support and coefficients may be wrong. Use less noisy states, a longer "
+                "or more exciting trajectory, or a smaller library"
+            )
+        shaky = np.flatnonzero(self.unstable.any(axis=1))
+        if shaky.size:
+            counts = ", ".join(str(int(c)) for c in self.unstable[shaky].sum(axis=1))
+            out.append(
+                f"equations {shaky.tolist()}: {counts} selected terms change sign or by more "
+                f"than {100 * STABILITY_TOLERANCE:.0f} % when a quarter of the data is left "
+                "out: the support is not reliably identified from these data (noise too "
+                "large for the library, or terms the trajectory barely excites); see "
+                "diagnostics_.unstable, and try more data, measured derivatives or a "
+                "smaller library"
+            )
         return out
 
     def __repr__(self) -> str:
@@ -128,6 +172,8 @@ class Diagnostics:
             f"converged={self.screening_converged}",
             f"  certified: {self.certified.tolist()}",
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
+            f"  library noise along its weakest direction: {self.library_noise:.2g}",
+            f"  unstable terms per equation: {self.unstable.sum(axis=1).tolist()}",
         ]
         problems = self.problems()
         lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
@@ -186,7 +232,11 @@ class HuberSINDy(BaseEstimator):
         How ``lam="auto"`` picks the point on the path.
     selection_tol : float
         Relative contribution ``|xi_j| ||theta_j|| / ||xdot_k||`` below which
-        ``lam="auto"`` drops a term.
+        ``lam="auto"`` drops a term.  With the screen on, the threshold used
+        (``selection_tol_``) is at least the relative noise of the noisiest library
+        column (the states' noise, measured by the temporal screen, carried through
+        the library): a term contributing less than the noise of the columns it is
+        built from cannot be told from errors in the variables.
     n_lams : int
         Points on the ``lam`` path.
     method : {"admm", "cvxpy", "stls", "ols"}
@@ -196,13 +246,15 @@ class HuberSINDy(BaseEstimator):
         After the fit, set coefficients with ``|xi| < threshold`` to zero.
     refit : bool
         Refit each equation on its nonzero terms with ``lam = 0`` (Huber loss, same
-        ``delta``): removes the shrinkage of the L1 penalty.
+        ``delta``): removes the shrinkage of the L1 penalty.  Always done with
+        ``lam="auto"`` (the selected model is such a refit).
     differentiation : {"robust", "finite_difference", "savgol"} or callable
         How derivatives are obtained when ``x_dot`` is not given.  ``"robust"``
         (default): entries the temporal screen flags are replaced by their local
-        prediction and given no weight, then a local quartic over 7 samples is
+        prediction and given no weight, then a local quartic over 5 samples is
         differentiated (:func:`~robust_sindy.differentiation.local_polynomial_derivative`;
-        fourth-order accurate, mildly smoothing).  ``"finite_difference"`` (second-order)
+        the fourth-order central difference: little bias for the regression to mistake
+        for terms).  ``"finite_difference"`` (second-order)
         and ``"savgol"`` differentiate the screened, repaired states (with
         ``screen=False``, the raw ones: then a single outlier spoils the derivatives of its
         neighbours, over the whole window for ``"savgol"``).  A callable receives
@@ -226,8 +278,19 @@ class HuberSINDy(BaseEstimator):
         The Huber thresholds and L1 weights used (chosen ones for ``"auto"``).
     screened_ : ndarray of bool, shape (n_samples,)
         Samples flagged by the screen and left out of the fit (all False without it).
+    temporal_ : TemporalScreening or None
+        The temporal screen's flags, repaired states and noise levels.
     screening_ : Screening or None
-        The screen's details (trusted equations, residual scales, rounds).
+        The model-based screen's details (residual scales, rounds, convergence).
+    library_noise_ : tuple (ndarray (n_features,), float)
+        The states' noise carried through the library: per column relative to its
+        root mean square, and along the library's least-excited direction (see
+        :class:`Diagnostics`); NaN without the screen.
+    selection_tol_ : float
+        The selection stage's threshold used (see ``selection_tol``).
+    diagnostics_ : Diagnostics
+        What the data can and cannot vouch for; problems are also raised as
+        :class:`IdentificationWarning`.
     path_ : Path or None
         The ``lam`` path of ``lam="auto"``.
     selection_ : Selection or None
@@ -434,9 +497,23 @@ class HuberSINDy(BaseEstimator):
             keep = ~self.screening_.outliers
         self.screened_ = ~keep
         th, yk = th_s[keep], y_s[keep]
+        # A term that contributes less than the noise of the library columns themselves
+        # cannot be told from errors in the variables: the selection stage's threshold
+        # is at least the relative noise of the noisiest column.
+        self.library_noise_ = self._library_noise(z, keep, th)
+        column_noise = self.library_noise_[0]
+        self.selection_tol_ = float(
+            max(self.selection_tol, np.max(column_noise))
+            if np.all(np.isfinite(column_noise))
+            else self.selection_tol
+        )
         self.path_ = self.selection_ = None
         if _is_auto(self.lam):
-            delta_s = auto_delta(th, yk, method=huber_method) if _is_auto(self.delta) else None
+            delta_s = (
+                auto_delta(th, yk, method=huber_method, **_pilot_budget(huber_method))
+                if _is_auto(self.delta)
+                else None
+            )
             if delta_s is None:
                 delta_s = per_column(self.delta, "delta", y.shape[1], positive=True)
                 delta_s = delta_s / scaler.y_scale
@@ -446,7 +523,7 @@ class HuberSINDy(BaseEstimator):
                 delta_s,
                 criterion=self.criterion,
                 n_lams=self.n_lams,
-                tol=self.selection_tol,
+                tol=self.selection_tol_,
                 segments=_segments_of(keep, xs),
                 method=self.method,
                 solver=self.solver,
@@ -461,7 +538,10 @@ class HuberSINDy(BaseEstimator):
             coef = scaler.coef_to_user(sel.coef)
         else:
             delta_u = (
-                np.atleast_1d(auto_delta(th, yk, method=huber_method)) * scaler.y_scale
+                np.atleast_1d(
+                    auto_delta(th, yk, method=huber_method, **_pilot_budget(huber_method))
+                )
+                * scaler.y_scale
                 if _is_auto(self.delta)
                 else self.delta
             )
@@ -480,12 +560,14 @@ class HuberSINDy(BaseEstimator):
             if not np.isfinite(self.threshold) or self.threshold < 0:
                 raise ValueError(f"threshold must be a finite number >= 0; got {self.threshold}")
             coef[np.abs(coef) < self.threshold] = 0.0
-        if self.refit:
+        if self.refit or self.selection_ is not None:
+            # lam="auto": the selection stage scored its refits with a bounded budget;
+            # the chosen support is refitted here in user units with the full one.
             coef = self._refit(theta[keep], y[keep], coef, options)
         self.coef_ = coef.T
         self.support_ = self.coef_ != 0
         self.outliers_ = np.abs(y - theta @ coef) > self.delta_
-        self.diagnostics_ = self._diagnose(th_s[keep], entry_flags)
+        self.diagnostics_ = self._diagnose(th_s[keep], y_s[keep], entry_flags)
         self._warn(self.diagnostics_)
         return self
 
@@ -534,7 +616,70 @@ class HuberSINDy(BaseEstimator):
             **options,
         )
 
-    def _diagnose(self, theta_kept, entry_flags) -> Diagnostics:
+    def _stability(self, theta_kept, y_kept) -> np.ndarray:
+        """Selected terms that leaving out one block of the data changes (see Diagnostics)."""
+        scaler = self.standardizer_
+        coef = scaler.coef_to_standard(self.coef_.T)  # (p, n) in standardised units
+        delta = np.broadcast_to(self.delta_, (coef.shape[1],)) / scaler.y_scale
+        unstable = np.zeros(coef.shape, dtype=bool)
+        m = theta_kept.shape[0]
+        edges = np.linspace(0, m, STABILITY_BLOCKS + 1).round().astype(int)
+        method = self.method if self.method in ("admm", "cvxpy") else "admm"
+        for k in range(coef.shape[1]):
+            sel = np.flatnonzero(coef[:, k])
+            if sel.size == 0 or m < STABILITY_BLOCKS * (sel.size + 2):
+                continue
+            ref = coef[sel, k]
+            for a, b in itertools.pairwise(edges):
+                rows = np.r_[0:a, b:m]
+                with warnings.catch_warnings():
+                    warnings.simplefilter("ignore")
+                    c = fit(
+                        theta_kept[rows][:, sel],
+                        y_kept[rows, k],
+                        method,
+                        delta[k],
+                        0.0,
+                        **_pilot_budget(method),
+                    )
+                c = c.coef.ravel()
+                unstable[sel, k] |= (np.sign(c) != np.sign(ref)) | (
+                    np.abs(c - ref) > STABILITY_TOLERANCE * np.abs(ref)
+                )
+        return unstable.T
+
+    def _library_noise(self, z, keep, theta_kept) -> tuple[np.ndarray, float]:
+        """The states' noise carried through the library (first order, kept samples):
+        per column relative to its root mean square, and along the least-excited
+        direction of the standardised library (see Diagnostics); NaN without the
+        temporal screen, which measures the noise."""
+        p = theta_kept.shape[1]
+        if self.temporal_ is None or not np.all(np.isfinite(self.temporal_.scale)):
+            return np.full(p, np.nan), float("nan")
+        base = z[keep].copy()
+        n = self.temporal_.scale.size
+        base[:, :n] = self.temporal_.repaired[keep]
+        scale = self.standardizer_.theta_scale
+        _, sing, vt = np.linalg.svd(theta_kept, full_matrices=False)
+        columns = np.zeros(p)
+        along = np.zeros(sing.size)
+        for k, sigma in enumerate(self.temporal_.scale):
+            step = 1e-4 * max(float(np.sqrt(np.mean(base[:, k] ** 2))), np.finfo(float).tiny)
+            up, down = base.copy(), base.copy()
+            up[:, k] += step
+            down[:, k] -= step
+            grad = (self.library_.transform(up) - self.library_.transform(down)) / (2 * step)
+            noise = sigma * grad / scale  # standardised columns
+            columns += np.mean(noise**2, axis=0)
+            along += np.sum((noise @ vt.T) ** 2, axis=0)
+        rms = np.sqrt(np.mean(theta_kept**2, axis=0))
+        columns = np.sqrt(columns) / np.where(rms > 0, rms, 1.0)
+        # Exactly degenerate directions (a constant state, duplicated terms) carry no
+        # signal to confuse: the condition number of the selected terms reports them.
+        ok = sing > 1e-8 * sing[0]
+        return columns, float(np.max(np.sqrt(along[ok]) / sing[ok]))
+
+    def _diagnose(self, theta_kept, y_kept, entry_flags) -> Diagnostics:
         """What the fit can and cannot vouch for (see :class:`Diagnostics`)."""
         m, p = self.screened_.size, theta_kept.shape[1]
         cond = np.ones(self.coef_.shape[0])
@@ -561,6 +706,8 @@ class HuberSINDy(BaseEstimator):
             ),
             certified=np.asarray(self.result_.column_converged, dtype=bool),
             condition_number=cond,
+            library_noise=self.library_noise_[1],
+            unstable=self._stability(theta_kept, y_kept),
         )
 
     def _warn(self, d: Diagnostics) -> None:
@@ -689,6 +836,12 @@ def _segments(xs) -> list[slice]:
 def _segments_of(keep: np.ndarray, xs) -> list[slice]:
     """The trajectories' slices among the kept samples."""
     return _slices(int(keep[seg].sum()) for seg in _segments(xs))
+
+
+def _pilot_budget(method: str) -> dict:
+    """Solver options of fits that only estimate a scale or check a decision: the
+    iteration budget of the path points (their certificates are not required)."""
+    return {"max_iter": PATH_MAX_ITER} if method == "admm" else {}
 
 
 def _is_robust(value) -> bool:

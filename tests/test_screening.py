@@ -92,3 +92,95 @@ def test_clean_data_gives_diagnostics_without_problems():
     assert d.flagged_fraction <= 0.02
     assert d.certified.all()
     assert "no problem found" in repr(d)
+
+
+def test_temporal_screen_sees_through_dense_row_contamination():
+    # 20 % of the samples hit in every component: a least-squares local fit lets such
+    # outliers hide one another; the trimmed start does not.
+    t, clean, x = _smooth(m=2000, seed=3)
+    rng = np.random.default_rng(4)
+    rows = rng.random(x.shape[0]) < 0.2
+    spread = clean.std(axis=0)
+    x[rows] += 0.2 * spread * rng.normal(size=(rows.sum(), 3))
+    s = temporal_screen(x, t)
+    gross = np.abs(x - clean) > 10e-3 * spread  # ten noise levels and more
+    assert s.flags[gross].mean() >= 0.9
+    assert s.flags[~rows].mean() <= 0.01
+    # the noise level is measured on the unflagged entries: the 1e-3 noise, not the
+    # contamination
+    np.testing.assert_allclose(s.scale, 1e-3, rtol=0.3)
+
+
+def test_a_burst_of_noise_is_not_excused_as_a_fast_excursion():
+    t, clean, x = _smooth(seed=5)
+    rng = np.random.default_rng(6)
+    x[600:640] += 0.3 * clean.std(axis=0) * rng.normal(size=(40, 3))
+    s = temporal_screen(x, t)
+    gross = np.abs(x - clean) > 10e-3 * clean.std(axis=0)
+    # Excused as a fast excursion, nearly none would be flagged; the model-based screen
+    # sees what the trimmed local fits inside a burst miss.
+    assert s.flags[600:640][gross[600:640]].mean() >= 0.5
+
+
+def test_smooth_local_scale_excuses_smooth_errors_only():
+    from robust_sindy.selection.screening import smooth_local_scale
+
+    rng = np.random.default_rng(0)
+    base = rng.normal(size=(400, 1))
+    smooth = base.copy()
+    smooth[200:240, 0] += 50 * np.sin(np.linspace(0, np.pi, 40))  # a smooth bump
+    rough = base.copy()
+    rough[200:240, 0] += 50 * rng.normal(size=40)  # a burst
+    assert smooth_local_scale(smooth, 20)[220, 0] > 10
+    assert smooth_local_scale(rough, 20)[220, 0] == 0.0
+
+
+def _lorenz_states(noise, seed=0):
+    data = Lorenz().generate()
+    rng = np.random.default_rng(seed)
+    return data, data.x + noise * data.x.std(axis=0) * rng.normal(size=data.x.shape)
+
+
+def test_library_noise_is_small_on_clean_states_and_raises_the_selection_threshold():
+    data, x = _lorenz_states(1e-3)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", IdentificationWarning)
+        model = HuberSINDy().fit(x, data.t, x_dot=data.x_dot)
+    columns, weakest = model.library_noise_
+    assert columns.shape == (10,) and np.all(columns < 0.01)
+    assert model.diagnostics_.library_noise == weakest < 0.05
+    assert model.selection_tol_ == max(model.selection_tol, columns.max())
+    assert not model.diagnostics_.unstable.any()
+
+
+def test_noisy_states_in_a_large_library_warn_of_errors_in_the_variables():
+    data, x = _lorenz_states(0.05)
+    with pytest.warns(IdentificationWarning, match="errors in the variables"):
+        model = HuberSINDy(library=PolynomialLibrary(degree=4)).fit(x, data.t, x_dot=data.x_dot)
+    assert model.diagnostics_.library_noise > 0.15
+    assert model.selection_tol_ > model.selection_tol
+
+
+def test_terms_fitted_to_noise_are_reported_unstable():
+    data = Lorenz().generate()
+    rng = np.random.default_rng(1)
+    noise = rng.normal(size=data.x.shape)  # derivatives that no term explains
+    with pytest.warns(IdentificationWarning, match="change sign or by more than 50 %"):
+        model = HuberSINDy(lam=1e-9, delta=1.0, screen=False).fit(data.x, data.t, x_dot=noise)
+    assert model.diagnostics_.unstable.any(axis=1).all()
+
+
+def test_derivatives_next_to_masked_entries_keep_their_order():
+    # The window of a sample is its five nearest usable samples: next to a masked entry
+    # the derivative is still a quartic's (errors like the unmasked ones), not a
+    # lower-order fit's.
+    t = np.linspace(0.0, 10.0, 501)
+    x = np.sin(3 * t)[:, None]
+    true = 3 * np.cos(3 * t)[:, None]
+    mask = np.ones(x.shape, dtype=bool)
+    mask[100:400:7] = False
+    x_bad = x.copy()
+    x_bad[~mask] += 10.0
+    plain = np.abs(local_polynomial_derivative(x, t) - true).max()
+    masked = np.abs(local_polynomial_derivative(x_bad, t, mask=mask) - true).max()
+    assert masked < 5 * plain < 1e-4

@@ -264,7 +264,13 @@ def select(
             progress=progress,
             **path_options,
         )
-    candidates = _stage_all(theta, y, full.coef, delta_k, tol, method, solver, options)
+    # The stage's refits score candidate supports: most are wrong, their residuals far
+    # beyond delta, and such near-LAD fits are the slowest to certify; they get the
+    # path's budget (the refit of the support finally chosen is certified by the caller:
+    # HuberSINDy refits it with the full budget).
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        candidates = _stage_all(theta, y, full.coef, delta_k, tol, method, solver, path_options)
     if criterion == "bic":
         # Correlation time of the residuals of the densest refit (the most complete model).
         densest = candidates[-1]
@@ -290,9 +296,9 @@ def select(
                     solver=solver,
                     **path_options,
                 )
-            cand = _stage_all(
-                theta[train], y[train], sub.coef, delta_k, tol, method, solver, options
-            )
+                cand = _stage_all(
+                    theta[train], y[train], sub.coef, delta_k, tol, method, solver, path_options
+                )
             r = y[test][None, :, :] - np.einsum("mp,lpn->lmn", theta[test], cand)
             scores += huber(r, delta_k).mean(axis=1) / len(folds)
     index = _pick(scores)

@@ -22,6 +22,7 @@ def auto_delta(
     rtol: float = 1e-2,
     floor: float = 1e-4,
     method: str = "admm",
+    **options,
 ) -> np.ndarray | float:
     """Per-column Huber threshold from the residual scale of a robust pilot fit.
 
@@ -46,6 +47,8 @@ def auto_delta(
         into an ill-conditioned least-absolute-deviation fit.
     method : {"admm", "cvxpy"}
         Solver of the pilot fits.
+    **options
+        Solver options of the pilot fits (see :func:`robust_sindy.fit`).
 
     Returns
     -------
@@ -64,7 +67,7 @@ def auto_delta(
     for _ in range(n_iter):
         if todo.size == 0:
             break
-        res = fit(theta, y[:, todo], method=method, delta=delta[todo], lam=0.0)
+        res = fit(theta, y[:, todo], method=method, delta=delta[todo], lam=0.0, **options)
         r = y[:, todo] - theta @ res.coef
         new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(r), lower[todo])
         change = np.abs(new - delta[todo]) / delta[todo]

@@ -20,16 +20,26 @@ All scales are robust scales of the data themselves, so every decision is unit-f
 
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.ndimage
 
-from .._fit import fit
+from .._fit import ConvergenceWarning, fit
 from .._scaling import robust_scale
 from .._validation import as_float_array, check_int, check_positive, check_problem
+from .path import PATH_MAX_ITER
 from .scale import _check_method, auto_delta
 
-__all__ = ["Screening", "TemporalScreening", "local_scale", "screen_rows", "temporal_screen"]
+__all__ = [
+    "Screening",
+    "TemporalScreening",
+    "local_scale",
+    "screen_rows",
+    "smooth_local_scale",
+    "temporal_screen",
+]
 
 #: Relative floor of every scale (to the spread of what is screened): errors below
 #: ``1e-4`` of a signal's spread change no identification, and on noise-free data the
@@ -50,7 +60,8 @@ class TemporalScreening:
     repaired : ndarray, shape (m, n)
         The states with flagged entries replaced by their local prediction.
     scale : ndarray, shape (n,)
-        Robust scale of the prediction errors per component (largest over the
+        The noise level of each component: the robust scale of the studentised
+        prediction errors of the entries left unflagged (largest over the
         trajectories).
     skipped : int
         Trajectories too short to screen (fewer than ``2 half_window + 2`` samples).
@@ -82,6 +93,29 @@ def local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
     windows = np.lib.stride_tricks.sliding_window_view(a, w, axis=0)  # (m - w + 1, n, w)
     med = np.median(windows, axis=-1)
     return 1.4826 * med[start]
+
+
+#: Samples of the running median that estimates the smooth bias of a local fit.
+_BIAS_WINDOW = 7
+#: Ratio of the local scale of the residuals' first differences to the local scale of
+#: the residuals below which they count as smooth (white noise gives about ``sqrt 2``).
+_SMOOTH_RATIO = 0.5
+
+
+def smooth_local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
+    """:func:`local_scale` where the values vary smoothly in time, 0 where they do not.
+
+    Large errors that vary smoothly from sample to sample (the bias of a local fit or
+    of numerical derivatives along a fast excursion) are the data's own structure;
+    large errors that jump from sample to sample are noise, however many there are in
+    a row (a burst): only the former raise the local bound of the screens.
+    """
+    a = np.asarray(values, dtype=float)
+    if a.shape[0] < 3:
+        return np.zeros_like(a)
+    scale = local_scale(a, half_width)
+    rough = local_scale(np.diff(a, axis=0, prepend=a[:1]), half_width)
+    return np.where(rough < _SMOOTH_RATIO * scale, scale, 0.0)
 
 
 def _window_max(a: np.ndarray, h: int) -> np.ndarray:
@@ -140,30 +174,107 @@ def _errors(x, t, flags, h, degree):
     return err, pred
 
 
+#: Local high-breakdown fit of the temporal screen's first pass: half window (samples),
+#: polynomial degree, number of elemental starts, concentration steps, starts kept
+#: after the first step, and windows per batch (bounds the memory to a few MB).
+_LTS_HALF, _LTS_DEGREE, _LTS_STARTS, _LTS_STEPS, _LTS_KEEP, _LTS_BATCH = 6, 3, 30, 3, 4, 4096
+
+
+def _elemental_subsets(w: int, size: int, count: int) -> np.ndarray:
+    """``count`` distinct subsets of ``size`` positions in ``range(w)`` (fixed, so the
+    screen is deterministic), each with at least one position in each part of the
+    window so that the elemental polynomial interpolates rather than extrapolates."""
+    rng = np.random.default_rng(0)
+    edges = np.linspace(0, w, size + 1).round().astype(int)
+    out: set = set()
+    while len(out) < count:
+        out.add(tuple(int(rng.integers(edges[i], edges[i + 1])) for i in range(size)))
+    return np.array(sorted(out))
+
+
+def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
+    """Fitted value at every sample of ``x`` (m,) by a least-trimmed-squares polynomial
+    in its window of ``2 _LTS_HALF + 1`` samples (shifted inside at the ends).
+
+    Starts from elemental fits (interpolating polynomials through a few samples of the
+    window), keeps the best after one concentration step (refit on the ``q`` samples
+    with the smallest residuals, ``q`` just over half the window), and iterates those:
+    the fit ignores up to ``w - q`` gross errors in every window, wherever they are."""
+    m, h, d = x.size, _LTS_HALF, _LTS_DEGREE
+    w = min(2 * h + 1, m)
+    q = (w + d + 2) // 2 + 1
+    eye = 1e-12 * np.eye(d + 1)
+    subsets = _elemental_subsets(w, d + 1, _LTS_STARTS)
+    out = np.empty(m)
+    for lo in range(0, m, _LTS_BATCH):
+        i = np.arange(lo, min(lo + _LTS_BATCH, m))
+        first = np.clip(i - h, 0, m - w)
+        idx = first[:, None] + np.arange(w)
+        tau = t[idx] - t[i][:, None]
+        span = np.abs(tau).max(axis=1, keepdims=True)
+        tau = tau / np.where(span > 0, span, 1.0)  # relative time: unit-free
+        v = tau[..., None] ** np.arange(d + 1)  # (b, w, d+1)
+        xw = x[idx]  # (b, w)
+        vs = v[:, subsets]  # (b, K, d+1, d+1)
+        coef = np.linalg.solve(vs + eye, xw[:, subsets][..., None])[..., 0]
+        for step in range(_LTS_STEPS):
+            r = xw[:, None, :] - np.einsum("bwa,bka->bkw", v, coef)
+            part = np.argpartition(np.abs(r), q - 1, axis=-1)[..., :q]
+            if step == 1:  # keep the most promising starts only
+                obj = np.take_along_axis(r, part, axis=-1) ** 2
+                best = np.argsort(obj.sum(-1), axis=1)[:, :_LTS_KEEP]
+                coef = np.take_along_axis(coef, best[..., None], axis=1)
+                part = np.take_along_axis(part, best[..., None], axis=1)
+            vq = np.take_along_axis(v[:, None], part[..., None], axis=2)
+            xq = np.take_along_axis(np.broadcast_to(xw[:, None], (*part.shape[:2], w)), part, 2)
+            gram = np.einsum("bkqa,bkqc->bkac", vq, vq) + eye
+            coef = np.linalg.solve(gram, np.einsum("bkqa,bkq->bka", vq, xq)[..., None])[..., 0]
+        r = xw[:, None, :] - np.einsum("bwa,bka->bkw", v, coef)
+        obj = np.partition(r**2, q - 1, axis=-1)[..., :q].sum(-1)
+        c = coef[np.arange(i.size), np.argmin(obj, axis=1)]
+        own = tau[np.arange(i.size), i - first]
+        out[i] = np.sum(own[:, None] ** np.arange(d + 1) * c, axis=1)
+    return out
+
+
 def _screen_one(x, t, h, degree, cutoff, scale_half):
     floor = _SCALE_FLOOR * np.maximum(x.std(axis=0), np.finfo(float).tiny)
 
+    def gross(err):
+        # The running median of the errors is the fit's smooth bias (e.g. along a fast
+        # part of the trajectory); an outlier, alone or in a short group, stands out of it.
+        err = err - scipy.ndimage.median_filter(err, size=(_BIAS_WINDOW, 1), mode="nearest")
+        scale = np.maximum(robust_scale(err), floor)
+        return np.abs(err) / (cutoff * np.maximum(scale, smooth_local_scale(err, scale_half)))
+
     def ratio_of(flags):
         err, pred = _errors(x, t, flags, h, degree)
-        scale = np.maximum(robust_scale(err), floor)
-        return np.abs(err) / (cutoff * np.maximum(scale, local_scale(err, scale_half))), pred
+        return gross(err), pred, err
 
-    def worst(ratio, among):
-        # An outlier spoils its neighbours' predictions too: of the entries ``among``,
-        # only the worst within each window can be flagged.
-        r = np.where(among, ratio, 0.0)
-        return (r > 1) & (r >= _window_max(r, h))
-
-    none = np.zeros(x.shape, dtype=bool)
-    ratio, _ = ratio_of(none)
-    candidates = worst(ratio, ~none)
-    # Refit without the candidates: confirm them, and find outliers they masked.
-    ratio, _ = ratio_of(candidates)
-    flags = (candidates & (ratio > 1)) | worst(ratio, ~candidates)
-    # Final confirmation against clean neighbours; flagged entries get the prediction.
-    ratio, pred = ratio_of(flags)
+    if x.shape[0] > 2 * _LTS_HALF + 1:
+        # 1. Candidates: gross errors from a local high-breakdown fit, which gross
+        #    errors in the window (up to a third of it) cannot pull towards themselves.
+        lts = np.column_stack([_lts_fitted(x[:, k], t) for k in range(x.shape[1])])
+        candidates = gross(x - lts) > 1
+        # 2. Confirmation by leave-one-out least squares from the nearest samples that
+        #    are not candidates (no entry is added here: a clean sample next to a gap of
+        #    candidates is predicted over a wider span, less accurately).
+        ratio, _, _ = ratio_of(candidates)
+        flags = candidates & (ratio > 1)
+    else:
+        # Too short for the trimmed fit: candidates from all neighbours (an outlier
+        # spoils its neighbours' predictions too, so only the worst of each window),
+        # then refitted without them, the worst gross entries masked by them added.
+        ratio, _, _ = ratio_of(np.zeros(x.shape, dtype=bool))
+        candidates = (ratio > 1) & (ratio >= _window_max(ratio, h))
+        ratio, _, _ = ratio_of(candidates)
+        others = np.where(candidates, 0.0, ratio)
+        flags = (candidates & (ratio > 1)) | ((others > 1) & (others >= _window_max(others, h)))
+    # 3. Final confirmation against clean neighbours; flagged entries get the prediction.
+    ratio, pred, err = ratio_of(flags)
     flags &= ratio > 1
-    return flags, np.where(flags, pred, x), robust_scale(x - pred)
+    noise = np.array([robust_scale(err[~flags[:, k], k]) for k in range(x.shape[1])])
+    return flags, np.where(flags, pred, x), noise
 
 
 def temporal_screen(
@@ -177,20 +288,30 @@ def temporal_screen(
 ) -> TemporalScreening:
     """Flag entries of sampled trajectories that are inconsistent with their neighbours.
 
-    Per trajectory and component, every sample is predicted from its ``2 half_window``
-    nearest unflagged neighbours in time by a least-squares polynomial of ``degree`` in
-    relative time.  Its error, divided by the factor by which the prediction's noise
-    exceeds the sample's, is gross when it exceeds ``cutoff`` times the larger of the
-    component's robust scale (:func:`robust_sindy.selection.robust_scale` of all errors)
-    and the local robust scale of the errors within ``scale_window`` samples
-    (:func:`local_scale`: an under-resolved fast excursion, where every prediction is
-    poor, is left to the model-based screen).  Three fixed passes, so the result never
-    oscillates: (1) with all neighbours, the gross entries that are the worst within
-    their window are candidates (a spike also spoils its neighbours' predictions);
-    (2) refitted without the candidates, the candidates still gross are kept and the
-    worst gross entries among the others (outliers masked by a nearby one) added;
-    (3) refitted without those, the entries still gross are the flags, and their
-    predictions the repaired values.
+    Per trajectory and component, a sample's error is its distance to a local
+    polynomial in relative time fitted around it; it is gross when it exceeds
+    ``cutoff`` times the larger of the component's robust scale
+    (:func:`robust_sindy.selection.robust_scale` of all errors) and, where the errors
+    vary smoothly in time, their local robust scale within ``scale_window`` samples
+    (:func:`smooth_local_scale`: an under-resolved fast excursion, where every fit is
+    poor in the same way, is left to the model-based screen, while a burst of noise,
+    whose errors jump from sample to sample, is not excused); the running median of
+    the errors over 7 samples (a fit's smooth bias) is subtracted first.  Three fixed
+    passes, so the result never oscillates:
+
+    1. candidates: errors from a least-trimmed-squares cubic in a window of 13
+       samples, started from elemental fits and refined by concentration steps, so
+       that up to a third of gross errors in a window cannot pull the fit towards
+       themselves (as they do a least-squares fit: 20 % of contaminated samples would
+       then hide most of each other);
+    2. each sample predicted by leave-one-out least squares (``degree``) from its
+       ``2 half_window`` nearest neighbours that are not candidates, the error divided
+       by the factor by which the prediction's noise exceeds the sample's: the
+       candidates still gross are kept (a trajectory too short for the trimmed fit
+       takes its candidates from this prediction with all neighbours instead);
+    3. refitted without those, the entries still gross are the flags, their
+       predictions the repaired values, and the robust scale of the unflagged errors
+       the component's noise level (``scale``).
 
     Parameters
     ----------
@@ -290,10 +411,24 @@ class Screening:
         )
 
 
-def _segment_local_scale(r, segments, half):
-    out = np.empty_like(r)
+def _segment_local_scale(r, segments, half, trusted):
+    """Local robust scale of the residuals of the ``trusted`` samples (those the
+    temporal screen left alone) around every sample, per trajectory: residuals that
+    grow along a fast part of the trajectory (state noise carried through a steep
+    right-hand side) raise it, a burst of corrupted samples does not."""
+    out = np.zeros_like(r)
     for seg in segments:
-        out[seg] = local_scale(r[seg], half) if seg.stop - seg.start > 1 else 0.0
+        a = np.where(trusted[seg, None], np.abs(r[seg]), np.nan)
+        m = a.shape[0]
+        w = min(2 * half + 1, m)
+        if m < 2 or np.all(np.isnan(a)):
+            continue
+        first = np.clip(np.arange(m) - half, 0, m - w)
+        windows = np.lib.stride_tricks.sliding_window_view(a, w, axis=0)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # windows without trusted samples
+            med = np.nanmedian(windows, axis=-1)
+        out[seg] = np.nan_to_num(1.4826 * med[first])
     return out
 
 
@@ -375,15 +510,20 @@ def screen_rows(
     converged = False
     done_rounds = 0
     scale = np.zeros(y.shape[1])
+    # The pilots only propose flags: a bounded budget, their certificates not required
+    # (the final fit of the kept samples is certified on its own).
+    budget = {"max_iter": PATH_MAX_ITER} if method == "admm" else {}
     for done_rounds in range(1, rounds + 1):
-        delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method))
-        coef = fit(theta[keep], y[keep], method, delta, 0.0).coef.reshape(p, -1)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
+            coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
         r = y - theta @ coef
         r = r - np.median(r[keep], axis=0)
         scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), _SCALE_FLOOR * rms)
         bound = np.broadcast_to(scale, r.shape)
         if segments is not None:
-            bound = np.maximum(bound, _segment_local_scale(r, segments, half))
+            bound = np.maximum(bound, _segment_local_scale(r, segments, half, first))
         new = (np.abs(r) > cutoff * bound).any(axis=1)
         if flags is not None and done_rounds > _FREE_ROUNDS:
             new |= flags  # past the free rounds flags are only added: no oscillation
