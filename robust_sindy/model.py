@@ -25,7 +25,7 @@ from ._validation import as_float_array, per_column
 from .differentiation import finite_difference, local_polynomial_derivative, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
-from .selection.path import PATH_MAX_ITER
+from .selection.path import pilot_budget
 from .selection.screening import temporal_screen
 from .simulate import check_time, input_function
 
@@ -523,7 +523,7 @@ class HuberSINDy(BaseEstimator):
         self.path_ = self.selection_ = None
         if _is_auto(self.lam):
             delta_s = (
-                auto_delta(th, yk, method=huber_method, **_pilot_budget(huber_method))
+                auto_delta(th, yk, method=huber_method, **pilot_budget(huber_method))
                 if _is_auto(self.delta)
                 else None
             )
@@ -551,9 +551,7 @@ class HuberSINDy(BaseEstimator):
             coef = scaler.coef_to_user(sel.coef)
         else:
             delta_u = (
-                np.atleast_1d(
-                    auto_delta(th, yk, method=huber_method, **_pilot_budget(huber_method))
-                )
+                np.atleast_1d(auto_delta(th, yk, method=huber_method, **pilot_budget(huber_method)))
                 * scaler.y_scale
                 if _is_auto(self.delta)
                 else self.delta
@@ -653,7 +651,7 @@ class HuberSINDy(BaseEstimator):
                         method,
                         delta[k],
                         0.0,
-                        **_pilot_budget(method),
+                        **pilot_budget(method),
                     )
                 c = c.coef.ravel()
                 unstable[sel, k] |= (np.sign(c) != np.sign(ref)) | (
@@ -849,12 +847,6 @@ def _segments(xs) -> list[slice]:
 def _segments_of(keep: np.ndarray, xs) -> list[slice]:
     """The trajectories' slices among the kept samples."""
     return _slices(int(keep[seg].sum()) for seg in _segments(xs))
-
-
-def _pilot_budget(method: str) -> dict:
-    """Solver options of fits that only estimate a scale or check a decision: the
-    iteration budget of the path points (their certificates are not required)."""
-    return {"max_iter": PATH_MAX_ITER} if method == "admm" else {}
 
 
 def _is_robust(value) -> bool:

@@ -12,7 +12,7 @@ from tqdm import tqdm
 from .._fit import ConvergenceWarning
 from .._losses import huber, huber_psi
 from .._validation import check_int, check_problem, loss_delta
-from .path import PATH_MAX_ITER, Path, path
+from .path import Path, path, pilot_budget
 from .refit import STAGE_ROUNDS, _refit_column, _select_column
 from .scale import HUBER_EFFICIENCY_CONSTANT, _check_method, auto_delta
 
@@ -248,7 +248,7 @@ def select(
     # Path points only propose supports, so ADMM gets fewer iterations there than in a
     # single fit (its Newton finish certifies most points at once; near-LAD points on
     # exact data may need thousands); the refits keep the full budget.
-    path_options = {**({"max_iter": PATH_MAX_ITER} if method == "admm" else {}), **options}
+    path_options = {**pilot_budget(method), **options}
     with warnings.catch_warnings():
         # Uncertified path points only propose supports; the refits of the selection
         # stage are certified on their own, and the chosen point is checked below.

@@ -22,6 +22,13 @@ __all__ = ["PATH_MAX_ITER", "Path", "lambda_max", "path"]
 PATH_MAX_ITER = 1000
 
 
+def pilot_budget(method: str) -> dict:
+    """Solver options of fits that only propose a decision (path points, pilots,
+    candidate refits): the iteration budget :data:`PATH_MAX_ITER` for ADMM, their
+    certificates not required."""
+    return {"max_iter": PATH_MAX_ITER} if method == "admm" else {}
+
+
 def lambda_max(theta, xdot, delta=1.0, loss: str = "huber") -> np.ndarray | float:
     """Smallest ``lam`` per column for which ``coef = 0`` solves the problem.
 

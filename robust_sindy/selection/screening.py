@@ -29,7 +29,7 @@ import scipy.ndimage
 from .._fit import ConvergenceWarning, fit
 from .._scaling import robust_scale
 from .._validation import as_float_array, check_int, check_positive, check_problem
-from .path import PATH_MAX_ITER
+from .path import pilot_budget
 from .scale import _check_method, auto_delta
 
 __all__ = [
@@ -84,14 +84,19 @@ def local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
     """Robust scale (``1.4826`` median absolute value) in a moving window, per column.
 
     ``values`` (m, n); the window holds ``2 half_width + 1`` samples, shifted inside the
-    array at its ends.
+    array at its ends.  NaN entries do not count; a window with nothing else gives 0.
     """
     a = np.abs(np.asarray(values, dtype=float))
     m = a.shape[0]
     w = min(2 * half_width + 1, m)
     start = np.clip(np.arange(m) - half_width, 0, m - w)
     windows = np.lib.stride_tricks.sliding_window_view(a, w, axis=0)  # (m - w + 1, n, w)
-    med = np.median(windows, axis=-1)
+    if np.isnan(a).any():
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+            med = np.nan_to_num(np.nanmedian(windows, axis=-1))
+    else:
+        med = np.median(windows, axis=-1)
     return 1.4826 * med[start]
 
 
@@ -418,17 +423,8 @@ def _segment_local_scale(r, segments, half, trusted):
     right-hand side) raise it, a burst of corrupted samples does not."""
     out = np.zeros_like(r)
     for seg in segments:
-        a = np.where(trusted[seg, None], np.abs(r[seg]), np.nan)
-        m = a.shape[0]
-        w = min(2 * half + 1, m)
-        if m < 2 or np.all(np.isnan(a)):
-            continue
-        first = np.clip(np.arange(m) - half, 0, m - w)
-        windows = np.lib.stride_tricks.sliding_window_view(a, w, axis=0)
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # windows without trusted samples
-            med = np.nanmedian(windows, axis=-1)
-        out[seg] = np.nan_to_num(1.4826 * med[first])
+        if seg.stop - seg.start > 1:
+            out[seg] = local_scale(np.where(trusted[seg, None], r[seg], np.nan), half)
     return out
 
 
@@ -512,7 +508,7 @@ def screen_rows(
     scale = np.zeros(y.shape[1])
     # The pilots only propose flags: a bounded budget, their certificates not required
     # (the final fit of the kept samples is certified on its own).
-    budget = {"max_iter": PATH_MAX_ITER} if method == "admm" else {}
+    budget = pilot_budget(method)
     for done_rounds in range(1, rounds + 1):
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
