@@ -18,7 +18,7 @@ from ._validation import (
     check_problem,
     loss_delta,
 )
-from .solvers import admm, reference, stls
+from .solvers import admm, newton, reference, stls
 
 __all__ = ["METHODS", "ConvergenceWarning", "FitResult", "fit"]
 
@@ -240,8 +240,8 @@ def fit(
     if method == "admm":
         opts = _admm_options(options, theta, y, one_d, loss)
         tol, gap_tol = opts["tol"], opts["gap_tol"]
-        out = admm.solve_admm(theta, y, delta_k, lam_k, **opts)
-        solver_name = "admm"
+        out = newton.solve_newton(theta, y, delta_k, lam_k, **opts)
+        solver_name = "newton" if opts["polish"] else "admm"
     elif method == "cvxpy":
         solver_name = "clarabel" if solver is None else solver
         if solver_name not in reference.SOLVERS:
@@ -266,7 +266,15 @@ def fit(
     column_ok = out.converged & ((cert.kkt <= tol) | (cert.rel_gap <= gap_tol))
     if not column_ok.all():
         bad = np.flatnonzero(~column_ok).tolist()
-        if method == "admm":
+        stalled = out.info.get("stalled")
+        if method == "admm" and stalled is not None and stalled[bad].any():
+            advice = (
+                f"columns {np.flatnonzero(stalled).tolist()} stopped where the objective no "
+                "longer changes in floating point: the library is too ill-conditioned for "
+                f"tol={opts['tol']:g} (see the messages); rescale or centre the states before "
+                "building the library, drop nearly collinear terms, or pass a larger tol"
+            )
+        elif method == "admm":
             advice = (
                 f"increase max_iter (now {opts['max_iter']}), start from another rho "
                 f"(now {opts['rho']}; e.g. 1e-4 or 10), or keep equilibrate, adaptive_rho "

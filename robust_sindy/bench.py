@@ -6,13 +6,18 @@ solver runs in the same process: a warm-up, then the median of several timed run
 Reported per run: time, ratio to the fast path, relative objective gap to the best
 objective any solver found, relative KKT violation (:func:`robust_sindy.kkt_violation`),
 peak memory allocated during one run (``tracemalloc``, numpy buffers included) and, for
-the fast path, its time in units of one ``Theta @ W`` plus one ``Theta.T @ V``
-("passes over Theta", measured in the same run).
+the fast path, its passes over ``Theta``.
 
-Solvers: the ADMM fast path (default options), CVXPY + Clarabel, CVXPY + OSQP, skglm
-(Huber + L1, ``alpha = lam / m``, no intercept; optional), PySINDy's STLSQ (threshold
-0.05, least squares: not the same problem, its objective is evaluated but not compared;
-optional) and the ADMM with the paper's settings.
+Solvers: the fast path (batched Newton, ADMM fallback; default options), CVXPY +
+Clarabel, CVXPY + OSQP, skglm (Huber + L1, ``alpha = lam / m``, no intercept;
+optional), PySINDy's STLSQ (threshold 0.05, least squares: not the same problem, its
+objective is evaluated but not compared; optional) and the ADMM with the paper's
+settings.  The passes over ``Theta`` of the fast path are counted by the solver (plus
+two for :func:`robust_sindy.fit`'s certificate).
+
+:func:`run_pipeline` times whole identifications (``HuberSINDy()`` with its defaults
+against PySINDy's STLSQ, SR3 with trimming and ``EnsembleOptimizer``, same library and
+data) and :func:`path_cost` a 50-point warm-started lam path in units of cold fits.
 """
 
 from __future__ import annotations
@@ -37,8 +42,9 @@ from .systems import Lorenz
 __all__ = ["SOLVERS", "BenchRow", "bench_problem", "run", "time_solver"]
 
 DELTA, LAM = 1.0, 1.0
+FAST = "Newton (fast path)"
 SOLVERS = (
-    "ADMM (fast path)",
+    FAST,
     "CVXPY + Clarabel",
     "CVXPY + OSQP",
     "skglm",
@@ -46,7 +52,7 @@ SOLVERS = (
     "ADMM (paper settings)",
 )
 #: Solvers that solve the Huber-Lasso problem (their objectives are compared).
-HUBER_SOLVERS = ("ADMM (fast path)", "CVXPY + Clarabel", "CVXPY + OSQP", "skglm",
+HUBER_SOLVERS = (FAST, "CVXPY + Clarabel", "CVXPY + OSQP", "skglm",
                  "ADMM (paper settings)")  # fmt: skip
 
 
@@ -69,13 +75,30 @@ class BenchRow:
     objective: np.ndarray | None = field(default=None, repr=False)  # per column
 
 
-def bench_problem(m: int, degree: int = 2, seed: int = 0):
-    """Library matrix (m, p) and targets (m, 3) of the contaminated Lorenz set-up."""
+def bench_data(m: int, seed: int = 0, states: int = 3):
+    """Time, contaminated states and derivatives of the Lorenz set-up (m samples).
+
+    ``states=6`` puts two Lorenz trajectories from different initial states side by
+    side (a 6-state data set with a known, block-diagonal model) for library scaling.
+    """
+    if states not in (3, 6):
+        raise ValueError(f"states must be 3 or 6; got {states!r}")
     lorenz = Lorenz()
-    data = lorenz.generate(t_end=(m - 1) * 0.01)
-    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(seed))
-    lib = PolynomialLibrary(degree=degree).fit(noisy.x, input_names=list(lorenz.state_names))
-    return np.ascontiguousarray(lib.transform(noisy.x)), noisy.x_dot
+    rng = np.random.default_rng(seed)
+    runs = [lorenz.generate(t_end=(m - 1) * 0.01)]
+    if states == 6:
+        runs.append(lorenz.generate(t_end=(m - 1) * 0.01, x0=[-5.0, 7.0, 30.0]))
+    x = np.hstack([r.x for r in runs])
+    x_dot = np.hstack([r.x_dot for r in runs])
+    noisy = contaminate(x, x_dot, rng=rng)
+    return runs[0].t, noisy.x, noisy.x_dot
+
+
+def bench_problem(m: int, degree: int = 2, seed: int = 0, states: int = 3):
+    """Library matrix (m, p) and targets (m, states) of the contaminated Lorenz set-up."""
+    _, x, x_dot = bench_data(m, seed, states)
+    lib = PolynomialLibrary(degree=degree).fit(x)
+    return np.ascontiguousarray(lib.transform(x)), x_dot
 
 
 def _available(name: str) -> bool:
@@ -109,7 +132,7 @@ def _stlsq(theta, y):
 
 
 def _runner(name: str, time_limit: float):
-    if name == "ADMM (fast path)":
+    if name == FAST:
         return lambda th, y: fit(th, y, delta=DELTA, lam=LAM).coef
     if name == "ADMM (paper settings)":
         return lambda th, y: fit(th, y, delta=DELTA, lam=LAM, **PAPER_OPTIONS).coef
@@ -185,28 +208,28 @@ def _guarded(name, theta, y, *, repeats, budget, limit):
     return out
 
 
-def _pass_time(theta, y, repeats=20):
-    """Seconds of one ``Theta @ W`` plus one ``Theta.T @ V`` (W: p x n, V: m x n)."""
-    w = np.ones((theta.shape[1], y.shape[1]))
-    out = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        v = theta @ w
-        theta.T @ v
-        out.append(time.perf_counter() - t0)
-    return float(np.median(out))
+def counted_passes(theta, y) -> int:
+    """Passes over ``Theta`` of one fast-path fit: those the solver counts, two per ADMM
+    iteration of any fallback column, and two for the certificate of ``fit``."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        res = fit(theta, y, delta=DELTA, lam=LAM)
+    return int(res.info["passes"] + 2 * res.iterations.max(initial=0) + 2)
 
 
 def run(
-    sizes=((1_000, 2), (10_000, 2), (100_000, 2), (1_000_000, 2), (10_000, 3), (10_000, 4),
-           (10_000, 5)),
+    sizes=((1_000, 2), (10_000, 2), (100_000, 2), (1_000_000, 2), (1_000, 3), (1_000, 4),
+           (10_000, 3), (10_000, 4), (10_000, 5), (10_000, 2, 6), (1_000, 2, 6)),
     *,
     solvers=SOLVERS,
     repeats: int = 5,
     skip_after: float = 60.0,
     progress: bool = True,
 ) -> list[BenchRow]:  # fmt: skip
-    """Run every solver on every ``(m, degree)`` problem; returns the rows.
+    """Run every solver on every ``(m, degree[, states])`` problem; returns the rows.
+
+    ``states`` is 3 (Lorenz) or 6 (two Lorenz trajectories side by side), for the
+    scaling with the library size ``p``.
 
     CVXPY solvers get ``skip_after`` as their time limit; a solver whose time at the
     previous ``m`` of the same degree, scaled linearly in ``m``, exceeds ``skip_after``
@@ -216,12 +239,12 @@ def run(
     from tqdm import tqdm
 
     rows: list[BenchRow] = []
-    last: dict[tuple[str, int], tuple[int, float]] = {}  # (solver, degree) -> (m, seconds)
-    jobs = [(m, d, s) for m, d in sizes for s in solvers]
-    bar = tqdm(total=len(jobs), desc="bench", disable=not progress)
-    for m, degree in sizes:
-        theta, y = bench_problem(m, degree)
-        label = f"Lorenz degree {degree}"
+    last: dict[tuple, tuple[int, float]] = {}  # (solver, degree, states) -> (m, seconds)
+    bar = tqdm(total=len(sizes) * len(solvers), desc="bench", disable=not progress)
+    for size in sizes:
+        m, degree, states = (*size, 3)[:3]
+        theta, y = bench_problem(m, degree, states=states)
+        label = f"Lorenz degree {degree}" if states == 3 else f"2 x Lorenz degree {degree}"
         block = []
         for name in solvers:
             bar.set_postfix_str(f"m={m} p={theta.shape[1]} {name}")
@@ -232,7 +255,7 @@ def run(
             if mod and not _available(mod):
                 row.note = f"skipped: {mod} not installed (pip install 'robust-sindy[bench]')"
                 continue
-            prev = last.get((name, degree))
+            prev = last.get((name, degree, states))
             if prev is not None and prev[1] * m / prev[0] > skip_after:
                 row.note = (
                     f"skipped: {prev[1]:.3g} s at m = {prev[0]} extrapolates linearly to "
@@ -254,7 +277,7 @@ def run(
                         )
                 except TimeoutError as exc:
                     row.note = f"stopped: {exc}"
-                    last[(name, degree)] = (m, np.inf)
+                    last[(name, degree, states)] = (m, np.inf)
                     continue
                 except Exception as exc:  # a peer failing is a result, not a crash
                     row.note = f"failed: {type(exc).__name__}: {exc}"[:120]
@@ -262,8 +285,8 @@ def run(
             row.time, row.runs, row.peak_mb = t, runs, peak
             row.kkt = float(np.max(kkt_violation(theta, y, coef, delta=DELTA, lam=LAM)))
             row.objective = objective(theta, y, coef, delta=DELTA, lam=LAM)
-            last[(name, degree)] = (m, t)
-        base = block[0].time if block[0].solver == "ADMM (fast path)" else np.nan
+            last[(name, degree, states)] = (m, t)
+        base = block[0].time if block[0].solver == FAST else np.nan
         found = [r.objective for r in block if r.solver in HUBER_SOLVERS and r.runs
                  and r.kkt < 1e-3]  # fmt: skip
         best = np.min(found, axis=0) if found else None
@@ -275,11 +298,147 @@ def run(
                 r.gap = float(np.max((r.objective - best) / np.abs(best)))
             if r.solver == "PySINDy STLSQ":
                 r.note = "least squares: a different problem; gap and KKT refer to the Huber one"
-        if block[0].runs:
-            block[0].passes = block[0].time / _pass_time(theta, y)
+        if block[0].runs and block[0].solver == FAST:
+            block[0].passes = counted_passes(theta, y)
         rows += block
     bar.close()
     return rows
+
+
+#: Whole identifications compared by :func:`run_pipeline` (PySINDy ones optional).
+PIPELINES = (
+    "HuberSINDy()",
+    "PySINDy STLSQ",
+    "PySINDy SR3 (trimming 0.1)",
+    "PySINDy EnsembleOptimizer (STLSQ)",
+)
+
+
+@dataclass
+class PipelineRow:
+    """One identification method on one data set."""
+
+    m: int
+    states: int
+    p: int
+    method: str
+    time: float = np.nan
+    runs: int = 0
+    ratio: float = np.nan  # time / PySINDy STLSQ time
+    exact: bool | None = None  # support equal to the true one
+    note: str = ""
+
+
+def _identify(name: str, t, x, x_dot) -> np.ndarray:
+    """Coefficients (n, p) of one identification method, degree-2 monomials."""
+    if name == "HuberSINDy()":
+        from .model import HuberSINDy
+
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # diagnostics are not timed differently
+            return HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t, x_dot=x_dot).coef_
+    import pysindy as ps
+
+    if name == "PySINDy STLSQ":
+        opt = ps.STLSQ(threshold=0.05)
+    elif name == "PySINDy SR3 (trimming 0.1)":
+        opt = ps.SR3(reg_weight_lam=0.05, regularizer="L0", trimming_fraction=0.1)
+    elif name == "PySINDy EnsembleOptimizer (STLSQ)":
+        opt = ps.EnsembleOptimizer(ps.STLSQ(threshold=0.05), bagging=True, n_models=20)
+    else:
+        raise ValueError(f"unknown method {name!r}; choose from {PIPELINES}")
+    model = ps.SINDy(optimizer=opt, feature_library=ps.PolynomialLibrary(degree=2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model.fit(x, t=t, x_dot=x_dot)
+    return model.coefficients()
+
+
+def _true_support(states: int) -> np.ndarray:
+    """True support (states, p) of ``bench_data`` in the degree-2 monomial order."""
+    import re
+
+    names = PolynomialLibrary(degree=2).fit(np.zeros((1, states))).get_feature_names()
+    own = PolynomialLibrary(degree=2).fit(np.zeros((1, 3))).get_feature_names()
+    true3 = Lorenz().true_coef(full=True) != 0  # (10, 3)
+    truth = np.zeros((states, len(names)), dtype=bool)
+    for b in range(states // 3):
+        for j, term in enumerate(own):
+            shifted = re.sub(r"x(\d)", lambda mt, b=b: f"x{int(mt.group(1)) + 3 * b}", term)
+            truth[3 * b : 3 * b + 3, names.index(shifted)] = true3[j]
+    return truth
+
+
+def run_pipeline(
+    sizes=((1_000, 3), (10_000, 3), (10_000, 6)), *, methods=PIPELINES, repeats: int = 3,
+    progress: bool = True,
+) -> list[PipelineRow]:  # fmt: skip
+    """Time whole identifications on the contaminated Lorenz data (``bench_data``).
+
+    Every method gets the same states, measured (contaminated) derivatives and a
+    degree-2 monomial library; reported: median time over ``repeats`` runs after a
+    warm-up, the ratio to PySINDy's STLSQ, and whether the support is exactly the
+    true one (the identification quality the speed must not cost).
+    """
+    from tqdm import tqdm
+
+    rows = []
+    bar = tqdm(total=len(sizes) * len(methods), desc="pipelines", disable=not progress)
+    for m, states in sizes:
+        t, x, x_dot = bench_data(m, states=states)
+        truth = _true_support(states)
+        p = truth.shape[1]
+        block = []
+        for name in methods:
+            bar.set_postfix_str(f"m={m} states={states} {name}")
+            bar.update()
+            row = PipelineRow(m, states, p, name)
+            block.append(row)
+            if name.startswith("PySINDy") and not _available("pysindy"):
+                row.note = "skipped: pysindy not installed (pip install 'robust-sindy[bench]')"
+                continue
+            try:
+                t_run, row.runs, coef, _ = time_solver(
+                    lambda th, y, name=name, t=t: _identify(name, t, th, y),
+                    x, x_dot, repeats=repeats, budget=120.0,
+                )  # fmt: skip
+            except Exception as exc:  # a peer failing is a result, not a crash
+                row.note = f"failed: {type(exc).__name__}: {exc}"[:120]
+                continue
+            row.time = t_run
+            row.exact = bool(np.array_equal(np.asarray(coef) != 0, truth))
+        base = next((r.time for r in block if r.method == "PySINDy STLSQ" and r.runs), np.nan)
+        for r in block:
+            r.ratio = r.time / base
+        rows += block
+    bar.close()
+    return rows
+
+
+def path_cost(m: int = 10_000, degree: int = 2, n_lams: int = 50) -> dict:
+    """Time of a warm-started ``n_lams``-point lam path in units of one cold fit.
+
+    The cold-fit unit is the mean time of ``fit`` at every fifth grid value (same
+    data: the contaminated Lorenz set-up, ``delta = 1``).
+    """
+    from .selection import path
+
+    theta, y = bench_problem(m, degree)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        path(theta, y, DELTA, n_lams=n_lams)  # warm-up
+        t0 = time.perf_counter()
+        res = path(theta, y, DELTA, n_lams=n_lams)
+        t_path = time.perf_counter() - t0
+        cold = []
+        for lam in res.lams[::5]:
+            t0 = time.perf_counter()
+            fit(theta, y, delta=DELTA, lam=lam)
+            cold.append(time.perf_counter() - t0)
+    unit = float(np.mean(cold))
+    return {"m": m, "p": theta.shape[1], "points": n_lams, "path_s": t_path,
+            "cold_fit_s": unit, "cold_fits": t_path / unit,
+            "certified": bool(res.converged.all())}  # fmt: skip
 
 
 def _fmt(v, spec):
@@ -301,7 +460,37 @@ def table(rows: list[BenchRow]) -> str:
     return "\n".join(lines)
 
 
-def write(rows: list[BenchRow], out: Path, command: str) -> list[Path]:
+def pipeline_table(rows: list[PipelineRow]) -> str:
+    lines = [
+        "| m | states | p | method | time [s] | runs | time / PySINDy STLSQ | exact support "
+        "| note |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
+    for r in rows:
+        exact = "-" if r.exact is None else ("yes" if r.exact else "no")
+        lines.append(
+            f"| {r.m} | {r.states} | {r.p} | {r.method} | {_fmt(r.time, '.4g')} | {r.runs} | "
+            f"{_fmt(r.ratio, '.3g')} | {exact} | {r.note} |"
+        )
+    return "\n".join(lines)
+
+
+def path_table(cost: dict) -> str:
+    return (
+        "| m | p | points | path [s] | one cold fit [s] | path / cold fit | certified |\n"
+        "|---|---|---|---|---|---|---|\n"
+        f"| {cost['m']} | {cost['p']} | {cost['points']} | {cost['path_s']:.4g} | "
+        f"{cost['cold_fit_s']:.4g} | {cost['cold_fits']:.3g} | {cost['certified']} |"
+    )
+
+
+def write(
+    rows: list[BenchRow],
+    out: Path,
+    command: str,
+    pipelines: list[PipelineRow] = (),
+    cost: dict | None = None,
+) -> list[Path]:
     """``benchmark.md``, ``benchmark.csv`` and ``benchmark.png`` (time against m)."""
     import matplotlib
 
@@ -322,6 +511,23 @@ def write(rows: list[BenchRow], out: Path, command: str) -> list[Path]:
         + ").\n\n"
         + table(rows)
         + "\n"
+        + (
+            "\n## Whole identifications\n\nContaminated Lorenz states and derivatives "
+            "(6 states: two trajectories side by side), degree-2 monomials, every method "
+            "with its defaults; time of one identification (median after a warm-up).\n\n"
+            + pipeline_table(list(pipelines))
+            + "\n"
+            if pipelines
+            else ""
+        )
+        + (
+            "\n## Cost of a warm-started lam path\n\nTime of a 50-point path in units of "
+            "the mean time of one cold `fit` at every fifth grid value.\n\n"
+            + path_table(cost)
+            + "\n"
+            if cost
+            else ""
+        )
     )
     csv_path = out / "benchmark.csv"
     with open(csv_path, "w", newline="") as fh:

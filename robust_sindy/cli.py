@@ -92,13 +92,18 @@ def _bench(args) -> int:
     from . import bench
 
     if args.quick:
-        sizes, repeats = ((200, 2),), 1
+        sizes, repeats, pipe_sizes, path_m = ((200, 2),), 1, ((300, 3),), 300
     else:
         sizes, repeats = bench.run.__defaults__[0], args.repeats
+        pipe_sizes, path_m = bench.run_pipeline.__defaults__[0], 10_000
     rows = bench.run(sizes, repeats=repeats, skip_after=args.skip_after, progress=not args.quiet)
+    pipelines = bench.run_pipeline(pipe_sizes, repeats=repeats, progress=not args.quiet)
+    cost = bench.path_cost(path_m)
     command = "robust-sindy bench" + (" --quick" if args.quick else "")
     print(bench.table(rows))
-    paths = bench.write(rows, Path(args.out), command)
+    print(bench.pipeline_table(pipelines))
+    print(bench.path_table(cost))
+    paths = bench.write(rows, Path(args.out), command, pipelines, cost)
     print("wrote", ", ".join(str(p) for p in paths))
     return 0
 
@@ -130,9 +135,13 @@ def main(argv: list[str] | None = None) -> int:
     rep.add_argument("--t-end", type=float, default=10.0, help="simulated seconds (10)")
     rep.add_argument("--placement", default="states", choices=PLACEMENTS)
     rep.add_argument("--quiet", action="store_true", help="no progress bar off a terminal")
-    ben = sub.add_parser("bench", help="time the fast path against CVXPY, OSQP, skglm and PySINDy")
+    ben = sub.add_parser(
+        "bench",
+        help="time the fast path against CVXPY, OSQP, skglm and PySINDy, whole "
+        "identifications against PySINDy, and the cost of a lam path",
+    )
     ben.add_argument("--quick", action="store_true", help="tiny sizes, one timed run each")
-    ben.add_argument("--out", default="validation/results", help="output folder")
+    ben.add_argument("--out", default="bench_results", help="output folder (./bench_results)")
     ben.add_argument("--repeats", type=int, default=5, help="timed runs per solver (5)")
     ben.add_argument(
         "--skip-after", type=float, default=60.0, help="skip a solver at larger sizes after (60 s)"

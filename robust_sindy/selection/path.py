@@ -13,7 +13,7 @@ from .._certificates import certify
 from .._fit import ConvergenceWarning, _admm_options, fit
 from .._losses import huber_psi
 from .._validation import as_float_array, check_int, check_positive, check_problem, loss_delta
-from ..solvers import admm
+from ..solvers import newton
 from .scale import _check_method, auto_delta
 
 __all__ = ["PATH_MAX_ITER", "Path", "lambda_max", "path"]
@@ -165,11 +165,11 @@ def path(
             raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
         opts = _admm_options(options, theta, y, False, "huber")
         opts.pop("warm_start")
-        prepared = admm.prepare(theta, equilibrate=opts["equilibrate"], kappa=opts["kappa"])
+        prepared = newton.prepare(theta, equilibrate=opts["equilibrate"], kappa=opts["kappa"])
         col_norms = np.linalg.norm(theta, axis=0)
         previous = None
         for i in tqdm(range(L), desc="lam path", disable=not progress, leave=False):
-            out = admm.solve_admm(
+            out = newton.solve_newton(
                 theta, y, delta_k, grid[i], warm_start=previous, prepared=prepared, **opts
             )
             cert = certify(theta, y, out.coef, delta_k, grid[i][None, :], col_norms)

@@ -222,19 +222,19 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
         xw = x[idx]  # (b, w)
         vs = v[:, subsets]  # (b, K, d+1, d+1)
         coef = np.linalg.solve(vs + eye, xw[:, subsets][..., None])[..., 0]
+        vt = np.swapaxes(v, 1, 2)  # (b, d+1, w)
         for step in range(_LTS_STEPS):
-            r = xw[:, None, :] - np.einsum("bwa,bka->bkw", v, coef)
-            part = np.argpartition(np.abs(r), q - 1, axis=-1)[..., :q]
+            r2 = (xw[:, None, :] - coef @ vt) ** 2  # (b, K, w)
+            smallest = np.partition(r2, q - 1, axis=-1)
             if step == 1:  # keep the most promising starts only
-                obj = np.take_along_axis(r, part, axis=-1) ** 2
-                best = np.argsort(obj.sum(-1), axis=1)[:, :_LTS_KEEP]
+                best = np.argsort(smallest[..., :q].sum(-1), axis=1)[:, :_LTS_KEEP]
                 coef = np.take_along_axis(coef, best[..., None], axis=1)
-                part = np.take_along_axis(part, best[..., None], axis=1)
-            vq = np.take_along_axis(v[:, None], part[..., None], axis=2)
-            xq = np.take_along_axis(np.broadcast_to(xw[:, None], (*part.shape[:2], w)), part, 2)
-            gram = np.einsum("bkqa,bkqc->bkac", vq, vq) + eye
-            coef = np.linalg.solve(gram, np.einsum("bkqa,bkq->bka", vq, xq)[..., None])[..., 0]
-        r = xw[:, None, :] - np.einsum("bwa,bka->bkw", v, coef)
+                r2 = np.take_along_axis(r2, best[..., None], axis=1)
+                smallest = np.take_along_axis(smallest, best[..., None], axis=1)
+            # The q samples with the smallest residuals (a tie admits one more).
+            vm = vt[:, None] * (r2 <= smallest[..., q - 1 : q])[:, :, None, :]  # (b, K, a, w)
+            coef = np.linalg.solve(vm @ v[:, None] + eye, vm @ xw[:, None, :, None])[..., 0]
+        r = xw[:, None, :] - coef @ vt
         obj = np.partition(r**2, q - 1, axis=-1)[..., :q].sum(-1)
         c = coef[np.arange(i.size), np.argmin(obj, axis=1)]
         own = tau[np.arange(i.size), i - first]

@@ -27,15 +27,14 @@ Speed-ups, all exact (the estimator does not change):
   adapts per column by residual balancing with a bounded ``sqrt(primal / dual)`` step,
   the scaled duals rescaled and no refactorisation;
 * over-relaxation ``alpha``;
-* an active-set (semismooth) Newton finish, tried first (from the least-squares
-  solution or the warm start), then at iterations 10, 20, 40, 80, every 100 after, and
-  whenever the residual tests pass: from the current iterate take the inlier/outlier
-  partition, the support and the signs, solve
-  ``Theta_IS^T Theta_IS xi_S = Theta_IS^T y_I + delta Theta_OS^T s_O - lam_S sigma_S``
-  (a reweighted least-squares step when the inliers do not determine ``xi_S``), and
-  safeguard with an exact line search on the true objective.  It terminates exactly
-  once the sets are identified.  Only a point whose KKT certificate is below ``tol``
-  ends a column.
+* a finish by the active-set Newton method (:func:`robust_sindy.solvers.newton.newton`)
+  from the current iterate at iterations 10, 20, 40, 80, every 100 after, and whenever
+  the residual tests pass.  Only a point whose KKT certificate is below ``tol`` ends a
+  column.
+
+This is the fallback of the fast path (:func:`robust_sindy.solvers.newton.solve_newton`
+runs the Newton method first and hands over the columns it cannot certify) and, with
+``PAPER_OPTIONS``, the paper's own method.
 
 A column is converged when its primal and dual residuals pass OSQP-style tests *and*
 its relative KKT violation (or relative duality gap) is below tolerance, or when a
@@ -44,16 +43,15 @@ Newton finish produced a point with a certified KKT violation.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 import scipy.linalg
 
-from .._certificates import certify, kkt_from_gradient, rounding_free
+from .._certificates import certify
 from .._losses import huber, huber_prox, huber_psi, soft_threshold
 from ._base import SolverOutput
+from .newton import Prepared, newton, prepare
 
-__all__ = ["DEFAULT_OPTIONS", "PAPER_OPTIONS", "Prepared", "prepare", "solve_admm"]
+__all__ = ["DEFAULT_OPTIONS", "PAPER_OPTIONS", "solve_admm"]
 
 DEFAULT_OPTIONS = dict(
     rho=0.1,
@@ -89,10 +87,6 @@ PAPER_OPTIONS = dict(
 )
 
 _RHO_MIN, _RHO_MAX, _MU, _TAU_MAX = 1e-10, 1e10, 10.0, 10.0
-_MAX_STEP = 2.0**20  # longest line-search step
-_FIRST_NEWTON = 5  # the first finish (before any ADMM) may take 5x newton_steps
-_EIG_CUT = 1e-11  # relative eigenvalue cut of the Newton systems
-_RCOND = np.sqrt(_EIG_CUT)  # the same cut on singular values
 _MAX_POLISH_INTERVAL = 100
 
 
@@ -101,241 +95,7 @@ def _colnorm(a: np.ndarray) -> np.ndarray:
 
 
 def _objective(r, x, delta, lam):
-    return huber(r, delta).sum() + np.abs(lam * x).sum()
-
-
-def _solve_sym(M: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Minimum-norm solution of a small symmetric PSD system.
-
-    Eigenvalues below ``1e-11`` of the largest are treated as zero: a Cholesky factor
-    of a numerically singular Gram matrix (duplicated library columns, too few inliers)
-    "succeeds" with a tiny pivot and returns a huge, meaningless step.
-    """
-    w, V = np.linalg.eigh(M)
-    keep = w > _EIG_CUT * max(w[-1], 0.0) if w.size else w.astype(bool)
-    inv = 1.0 / w[keep]
-    return V[:, keep] @ ((V[:, keep].T @ b) * (inv if b.ndim == 1 else inv[:, None]))
-
-
-def _lstsq(a: np.ndarray, b: np.ndarray):
-    """Least squares by QR with column pivoting (LAPACK gelsy), rank cut at ``_RCOND``."""
-    return scipy.linalg.lstsq(a, b, cond=_RCOND, lapack_driver="gelsy", check_finite=False)
-
-
-def _slope(t, r, q, x, d, lam, delta):
-    """Right derivative of ``phi(t) = P(x + t d)``; ``r = y - A x``, ``q = A d``.
-
-    ``phi`` is convex and piecewise quadratic, so its derivative is nondecreasing.
-    """
-    xt = x + t * d
-    s = np.where(xt != 0, np.sign(xt), np.sign(d))
-    return (lam * s) @ d - huber_psi(r - t * q, delta) @ q
-
-
-def _line_search(r, q, x, d, lam, delta) -> float:
-    """Exact minimiser of the convex piecewise-quadratic ``phi(t)`` over ``t >= 0``.
-
-    ``phi'(t) = a + b t`` between breakpoints (a residual entering or leaving the
-    quadratic zone of the Huber loss, a coordinate crossing zero); the breakpoints are
-    sorted once and the slope is accumulated segment by segment, so the minimiser is
-    exact (0 if ``d`` is no descent direction, at most ``_MAX_STEP``).
-    """
-    if _slope(0.0, r, q, x, d, lam, delta) >= 0:
-        return 0.0
-    # Slope at t = 0+ split into a + b t, and the jumps of (a, b) at later breakpoints.
-    moving = q != 0
-    rq, qq = r[moving], q[moving]
-    absq = np.abs(qq)
-    t_a = (rq - delta) / qq  # residual crosses +delta
-    t_b = (rq + delta) / qq  # residual crosses -delta
-    lo, hi = np.minimum(t_a, t_b), np.maximum(t_a, t_b)
-    before = (-absq * delta, np.zeros_like(qq))
-    quad = (-qq * rq, qq * qq)
-    after = (absq * delta, np.zeros_like(qq))
-    # A residual exactly at +-delta has slope continuous there, so "<= 0" is harmless.
-    zone_quad = (lo <= 0) & (hi > 0)
-    zone_after = hi <= 0
-    a0 = np.where(zone_after, after[0], np.where(zone_quad, quad[0], before[0])).sum()
-    b0 = np.where(zone_quad, quad[1], 0.0).sum()
-    s0 = np.where(x != 0, np.sign(x), np.sign(d))
-    a0 += (lam * s0) @ d
-    ev_t = [lo[lo > 0], hi[hi > 0]]
-    ev_a = [(quad[0] - before[0])[lo > 0], (after[0] - quad[0])[hi > 0]]
-    ev_b = [(quad[1] - before[1])[lo > 0], (after[1] - quad[1])[hi > 0]]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        tz = np.where(d != 0, -x / d, -1.0)
-    cross = tz > 0
-    ev_t.append(tz[cross])
-    ev_a.append((lam * np.abs(d) - lam * s0 * d)[cross])
-    ev_b.append(np.zeros(int(cross.sum())))
-    t_ev = np.concatenate(ev_t)
-    order = np.argsort(t_ev, kind="stable")
-    t_ev = t_ev[order]
-    ca = a0 + np.concatenate([[0.0], np.cumsum(np.concatenate(ev_a)[order])])
-    cb = b0 + np.concatenate([[0.0], np.cumsum(np.concatenate(ev_b)[order])])
-    starts = np.concatenate([[0.0], t_ev])
-    ends = np.concatenate([t_ev, [np.inf]])
-    with np.errstate(invalid="ignore"):
-        end_slope = np.where(np.isfinite(ends), ca + cb * ends, np.where(cb > 0, np.inf, ca))
-    hit = np.flatnonzero(end_slope >= 0)
-    if hit.size == 0:
-        return _MAX_STEP
-    k = hit[0]
-    if ca[k] + cb[k] * starts[k] >= 0 or cb[k] <= 0:
-        t = starts[k]
-    else:
-        t = -ca[k] / cb[k]
-    return float(min(max(t, 0.0), _MAX_STEP))
-
-
-def _phi(t, r, q, x, d, lam, delta) -> float:
-    return float(huber(r - t * q, delta).sum() + lam @ np.abs(x + t * d))
-
-
-def _step_length(r, q, x, d, lam, delta) -> float:
-    """The full step if it decreases the objective enough (Armijo, 1e-4), else exact."""
-    s0 = _slope(0.0, r, q, x, d, lam, delta)
-    if s0 >= 0:
-        return 0.0
-    if _phi(1.0, r, q, x, d, lam, delta) <= _phi(0.0, r, q, x, d, lam, delta) + 1e-4 * s0:
-        return 1.0
-    return _line_search(r, q, x, d, lam, delta)
-
-
-def newton_finish(A, G, y, lam, delta, x, *, max_steps, tol, col_norms, lipschitz, abs_a=None):
-    """Semismooth Newton on one column, globalised by an exact line search.
-
-    ``A`` (m, p), ``G = A^T A``, ``y`` (m,), ``lam`` (p,), scalar ``delta``,
-    ``lipschitz`` the largest eigenvalue of ``G``.
-
-    The Newton step is that of the proximal-gradient fixed point
-    ``x = S(x + T g, T lam)`` (``T = diag(1 / ||A_j||^2)``): the support is
-    ``S = {|x + T g| > T lam}`` with signs ``sign(x + T g)``, the inlier/outlier
-    partition is that of the current residual, and the step solves
-    ``A_IS^T A_IS xi_S = A_IS^T y_I + delta A_OS^T s_O - lam_S sigma_S`` (coordinates
-    off ``S`` go to exactly zero).  Once the sets are right this is the exact optimum.
-    When the step is no descent direction, a proximal-gradient step (always one)
-    is taken instead.  Returns ``(x, certified, steps)``.
-    """
-    x = x.copy()
-    free = lam == 0
-    T = 1.0 / col_norms**2
-    r = y - A @ x
-    best = None
-    abs_a = (lambda: np.abs(A)) if abs_a is None else abs_a
-
-    def gradient_and_kkt(x, r):
-        psi = huber_psi(rounding_free(r, y, abs_a, x), delta)
-        g = A.T @ psi
-        scale = np.atleast_1d(np.linalg.norm(psi))
-        return g, kkt_from_gradient(x[:, None], g[:, None], lam[:, None], col_norms, scale)[0]
-
-    for step in range(max_steps + 1):
-        g, kkt = gradient_and_kkt(x, r)
-        if kkt <= tol and (best is None or kkt < best[1]):
-            best = (x, kkt, step, g)
-        if kkt <= 0.1 * tol:  # a margin, so the check in the caller's units passes too
-            break
-        if step == max_steps:
-            break
-        u = x + T * g
-        S = (np.abs(u) > T * lam) | free
-        sigma = np.where(free, 0.0, np.sign(u))
-        out = np.abs(r) > delta
-        AS = A[:, S]
-        inl = ~out
-        AI = AS[inl]
-        n_s = AS.shape[1]
-        # The inlier least-squares part by an orthogonal factorisation (residuals of an
-        # exact fit stay at rounding level), the linear terms through the Gram matrix.
-        if AI.size:
-            step_s, _, rank, _ = _lstsq(AI, y[inl])
-        else:
-            step_s, rank = np.zeros(n_s), 0
-        b = -lam[S] * sigma[S]
-        if rank < n_s:
-            # Too few inliers to fix the support's coefficients (the loss is linear along
-            # some direction, as in least-absolute-deviation fits): take the
-            # iteratively-reweighted least-squares step instead, whose quadratic model
-            # majorises the Huber loss (weights min(1, delta / |r_i|)).
-            sw = np.sqrt(np.minimum(1.0, delta / np.maximum(np.abs(r), np.finfo(float).tiny)))
-            AW = AS * sw[:, None]
-            step_s = _lstsq(AW, sw * y)[0]
-            if np.any(b):
-                step_s += _solve_sym(AW.T @ AW, b)
-        else:
-            if out.any():
-                b += delta * (AS[out].T @ np.sign(r[out]))
-            if np.any(b):
-                if 2 * np.count_nonzero(out) < A.shape[0]:
-                    AO = AS[out]
-                    M = G[np.ix_(S, S)] - AO.T @ AO
-                else:
-                    M = AI.T @ AI
-                step_s += _solve_sym(M, b)
-        cand = np.zeros_like(x)
-        cand[S] = step_s
-        d = cand - x
-        q = A @ d
-        t = _step_length(r, q, x, d, lam, delta)
-        if t == 0.0:
-            d = soft_threshold(x + g / lipschitz, lam / lipschitz) - x
-            q = A @ d
-            t = _line_search(r, q, x, d, lam, delta)
-            if t == 0.0:
-                break
-        if t == 1.0:
-            x = x + d
-            r = y - A @ x
-        else:
-            x = x + t * d
-            r = r - t * q
-    if best is None:
-        return x, False, step
-    x, _, step, g = best
-    # A partial line-search step leaves rounding-level entries where the optimum has
-    # exact zeros; drop those the proximal-gradient map sets to zero if the certificate
-    # still holds.
-    zero = (np.abs(x + T * g) <= T * lam) & (x != 0)
-    if zero.any():
-        xc = np.where(zero, 0.0, x)
-        if gradient_and_kkt(xc, y - A @ xc)[1] <= tol:
-            x = xc
-    return x, True, step
-
-
-@dataclass
-class Prepared:
-    """What ADMM and its finish compute from ``Theta`` alone (reusable along a path)."""
-
-    nz: np.ndarray  # nonzero columns of Theta
-    scale: np.ndarray  # their equilibration scales
-    A: np.ndarray  # Theta[:, nz] / scale
-    G: np.ndarray  # A^T A
-    a_norms: np.ndarray
-    lipschitz: float
-    factor: tuple  # Cholesky factor of G + kappa I
-    equilibrate: bool
-    kappa: float
-    _abs_a: np.ndarray | None = None
-
-    def abs_a(self) -> np.ndarray:
-        """``|A|``, computed on first use (only certificates of near-exact fits need it)."""
-        if self._abs_a is None:
-            self._abs_a = np.abs(self.A)
-        return self._abs_a
-
-
-def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
-    """Equilibrate ``theta`` and factorise once; pass as ``prepared`` to :func:`solve_admm`."""
-    norms = _colnorm(theta)
-    nz = norms > 0
-    scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
-    A = theta[:, nz] / scale
-    G = A.T @ A
-    lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny) if G.size else 1.0
-    factor = scipy.linalg.cho_factor(G + kappa * np.eye(A.shape[1]), check_finite=False)
-    return Prepared(nz, scale, A, G, _colnorm(A), lipschitz, factor, equilibrate, kappa)
+    return huber(r, delta).sum(axis=0) + np.abs(lam * x).sum(axis=0)
 
 
 def solve_admm(
@@ -381,8 +141,8 @@ def solve_admm(
     adaptive_rho : bool
         Balance the primal and dual residuals of each column by updating its ``rho``.
     polish : bool
-        Try the active-set Newton finish before any ADMM iteration, then at iterations
-        10, 20, 40, 80, every 100 after, and whenever the residual tests pass.
+        Try the active-set Newton finish at iterations 10, 20, 40, 80, every 100
+        after, and whenever the residual tests pass.
     max_iter : int
         ADMM iteration limit per column.
     eps_abs, eps_rel : float
@@ -399,21 +159,17 @@ def solve_admm(
         Coefficients (p, n) and, optionally, the dual estimate ``psi_delta(r)`` (m, n)
         of an earlier solve; missing duals are derived from the coefficients.
     prepared : Prepared, optional
-        :func:`prepare` applied to this ``theta`` (skips the equilibration and the
-        factorisation when solving repeatedly on the same library).
+        :func:`robust_sindy.solvers.newton.prepare` applied to this ``theta`` (skips
+        the equilibration and the factorisation when solving repeatedly on the same
+        library).
     """
     m, p = theta.shape
     n = y.shape[1]
     lam = np.broadcast_to(lam, (p, n)).astype(float)
     if prepared is None or prepared.equilibrate != equilibrate or prepared.kappa != kappa:
         prepared = prepare(theta, equilibrate=equilibrate, kappa=kappa)
-    nz, scale, A, G = prepared.nz, prepared.scale, prepared.A, prepared.G
-    a_norms, abs_a, lipschitz, factor = (
-        prepared.a_norms,
-        prepared.abs_a,  # a method: |A| is formed only if needed
-        prepared.lipschitz,
-        prepared.factor,
-    )
+    nz, scale, A = prepared.nz, prepared.scale, prepared.A
+    a_norms, factor = prepared.a_norms, prepared.factor
     lam_s = lam[nz] / scale[:, None]
     # Exact per-column rescaling y/c, delta/c, lam/c (solution xi/c) with c = delta, so
     # every column is solved in units of its Huber threshold (rms of y for the squared loss).
@@ -449,42 +205,40 @@ def solve_admm(
     next_polish = check_every
     sq_mp, sq_p = np.sqrt(m + ps), np.sqrt(ps)
 
-    def finish(cols, k_local, x_start, max_steps=newton_steps):
+    def finish(k_local, x_start):
         """Newton finish on local columns; returns a mask of certified ones."""
-        done = np.zeros(len(cols), dtype=bool)
-        for j in k_local:
-            k = cols[j]
-            x, ok, steps = newton_finish(
-                A,
-                G,
-                y_act[:, j],
-                lam_act[:, j],
-                delta_act[j],
-                x_start[:, j],
-                max_steps=max_steps,
-                tol=tol,
-                col_norms=a_norms,
-                lipschitz=lipschitz,
-                abs_a=abs_a,
-            )
-            newton_total[k] += steps
-            if ok:
-                out_x[:, k] = x
-                converged[k] = True
-                messages[k] = f"certified by the active-set finish after {steps} Newton steps"
-                done[j] = True
-                continue
-            rj = y_act[:, j] - A @ x
-            rz = y_act[:, j] - A @ z[:, j]
-            if _objective(rj, x, delta_act[j], lam_act[:, j]) < _objective(
-                rz, z[:, j], delta_act[j], lam_act[:, j]
-            ):
-                # Restart ADMM from the better point with consistent duals.
-                psi = huber_psi(rj, delta_act[j])
-                xi[:, j] = z[:, j] = x
-                r[:, j] = rj
-                ur[:, j] = -psi / rho_act[j]
-                uz[:, j] = -(A.T @ psi) / (kappa * rho_act[j])
+        done = np.zeros(active.size, dtype=bool)
+        if k_local.size == 0:
+            return done
+        cols = active[k_local]
+        run = newton(
+            prepared,
+            y_act[:, k_local],
+            delta_act[k_local],
+            lam_act[:, k_local],
+            x_start[:, k_local],
+            max_steps=newton_steps,
+            tol=tol,
+        )
+        x, ok = run.x, run.certified
+        newton_total[cols] += run.steps
+        out_x[:, cols[ok]] = x[:, ok]
+        converged[cols[ok]] = True
+        for k in cols[ok]:
+            messages[k] = f"certified by the active-set finish after {newton_total[k]} Newton steps"
+        done[k_local[ok]] = True
+        # Restart ADMM from the Newton point where it is better, with consistent duals.
+        j = k_local[~ok]
+        rj = y_act[:, j] - A @ x[:, ~ok]
+        better = _objective(rj, x[:, ~ok], delta_act[j], lam_act[:, j]) < _objective(
+            y_act[:, j] - A @ z[:, j], z[:, j], delta_act[j], lam_act[:, j]
+        )
+        j, xb, rb = j[better], x[:, ~ok][:, better], rj[:, better]
+        psi = huber_psi(rb, delta_act[j])
+        xi[:, j] = z[:, j] = xb
+        r[:, j] = rb
+        ur[:, j] = -psi / rho_act[j]
+        uz[:, j] = -(A.T @ psi) / (kappa * rho_act[j])
         return done
 
     y_act, lam_act, delta_act, rho_act = y, lam_s, delta, rho_k
@@ -494,13 +248,6 @@ def solve_admm(
     for k in np.flatnonzero(done):
         converged[k] = True
         messages[k] = "zero is optimal (lam >= lambda_max)"
-    if polish:
-        # Newton first: from the warm start, or from the (minimum-norm)
-        # least-squares solution; most problems are finished here without ADMM.
-        start = z if warm_start is not None else _solve_sym(G, A.T @ y)
-        todo = np.flatnonzero(~done)
-        done |= finish(active, todo, start, _FIRST_NEWTON * newton_steps)
-        next_polish = check_every
     while True:
         if done.any():
             final_rho[active[done]] = rho_act[done]
@@ -557,7 +304,7 @@ def solve_admm(
                 next_polish += min(next_polish, _MAX_POLISH_INTERVAL)
             else:
                 todo = np.intersect1d(todo, np.flatnonzero(passed))
-            done |= finish(active, todo, z)
+            done |= finish(todo, z)
         if adaptive_rho and not done.all():
             # Residual balancing (Boyd et al. 2011, sec. 3.4.1) per column, with the
             # step sqrt(prim / dual) bounded by _TAU_MAX (Wohlberg 2017).

@@ -1,0 +1,104 @@
+"""The batched Newton fast path: its pieces against direct computations, batching against
+column-by-column solves, and the ADMM fallback, all judged by certificates."""
+
+import numpy as np
+import pytest
+
+import robust_sindy as rs
+from robust_sindy.selection import lambda_max
+from robust_sindy.solvers import newton as nw
+
+from .conftest import lorenz_library, random_problem
+
+
+def _rel(a, b):
+    return np.abs(a - b) / np.maximum(np.abs(b), 1.0)
+
+
+@pytest.mark.parametrize("n_out", [0, 15, 180])
+def test_inlier_gram_equals_the_gram_of_the_kept_rows(n_out):
+    rng = np.random.default_rng(n_out)
+    A = rng.normal(size=(200, 7)) * np.logspace(0, 3, 7)
+    drop = np.zeros((200, 3))
+    for k in range(3):
+        drop[rng.choice(200, size=n_out, replace=False), k] = 1.0
+    drop[:, 2] *= rng.uniform(size=200)  # fractional: the reweighted step's weights
+    M = nw.inlier_gram(A, A.T @ A, drop)
+    for k in range(3):
+        fresh = (A * (1.0 - drop[:, k, None])).T @ A
+        np.testing.assert_allclose(M[k], fresh, rtol=0, atol=1e-12 * np.abs(fresh).max())
+
+
+def test_masked_solve_solves_each_support_block_and_zeroes_the_rest():
+    rng = np.random.default_rng(1)
+    B = rng.normal(size=(3, 30, 6))
+    M = np.einsum("kia,kib->kab", B, B)
+    rhs = rng.normal(size=(6, 3))
+    S = rng.uniform(size=(6, 3)) < 0.6
+    S[0] = True
+    d, deficient = nw.masked_solve(M, rhs, S)
+    assert not deficient.any()
+    for k in range(3):
+        s = S[:, k]
+        np.testing.assert_allclose(d[s, k], np.linalg.solve(M[k][np.ix_(s, s)], rhs[s, k]))
+        assert np.all(d[~s, k] == 0)
+    # A singular support block is reported (and solved in the minimum-norm sense).
+    M[0][:, 1] = M[0][:, 0]
+    M[0][1, :] = M[0][0, :]
+    S[:2, 0] = True
+    assert nw.masked_solve(M, rhs, S)[1][0]
+
+
+@pytest.mark.parametrize(
+    "problem",
+    [("random", s, o) for s in range(4) for o in (0.1, 0.3)] + [("lorenz", 0, 2), ("lorenz", 1, 3)],
+)
+def test_batched_and_column_wise_solves_agree(problem):
+    kind, seed, arg = problem
+    if kind == "random":
+        theta, y = random_problem(seed, n=3, outliers=arg)
+    else:
+        theta, y = lorenz_library(seed, arg)
+    lam = 0.05 * lambda_max(theta, y, 1.0)
+    joint = rs.fit(theta, y, delta=1.0, lam=lam)
+    assert joint.converged and joint.kkt.max() <= 1e-8
+    for k in range(3):
+        alone = rs.fit(theta, y[:, k], delta=1.0, lam=lam[k])
+        assert alone.converged
+        assert _rel(joint.objective[k], alone.objective[0]) <= 1e-10
+
+
+@pytest.mark.parametrize("degree", [2, 3])
+def test_system_problem_agrees_with_clarabel_without_the_fallback(degree):
+    theta, y = lorenz_library(0, degree)
+    res = rs.fit(theta, y, delta=1.0, lam=1.0)
+    assert res.solver == "newton" and res.converged and res.kkt.max() <= 1e-8
+    assert not res.info["fallback"].any()
+    ref = rs.fit(theta, y, method="cvxpy", delta=1.0, lam=1.0)
+    assert np.all((res.objective - ref.objective) / np.abs(ref.objective) <= 1e-8)
+
+
+def test_columns_newton_hands_over_are_certified_by_the_admm():
+    theta, y = lorenz_library(1, 2)
+    res = rs.fit(theta, y, delta=1.0, lam=1.0, newton_steps=0)  # Newton takes no step
+    assert res.info["fallback"].all() and res.iterations.min() > 0
+    assert res.converged and res.kkt.max() <= 1e-8
+    fast = rs.fit(theta, y, delta=1.0, lam=1.0)
+    assert np.all(_rel(res.objective, fast.objective) <= 1e-8)
+    assert all("ADMM" in msg for msg in res.messages)
+
+
+def test_paper_settings_are_the_plain_admm():
+    theta, y = lorenz_library(0, 2, m=301)
+    with pytest.warns(rs.ConvergenceWarning):  # the paper's 5000 iterations do not suffice
+        res = rs.fit(theta, y, delta=1.0, lam=1.0, **rs.PAPER_ADMM_OPTIONS)
+    assert res.solver == "admm" and "newton_steps" in res.info
+    assert res.info["newton_steps"].sum() == 0
+
+
+def test_passes_over_theta_are_counted():
+    theta, y = lorenz_library(0, 2)
+    res = rs.fit(theta, y, delta=1.0, lam=1.0)
+    steps = res.info["newton_steps"].max()
+    # One residual, one gradient and one direction image per step, plus the start.
+    assert 3 <= res.info["passes"] <= 3 * steps + 6
