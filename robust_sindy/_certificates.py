@@ -34,7 +34,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._losses import huber, huber_psi, soft_threshold
+from ._losses import huber, huber_psi
 from ._validation import check_coef, check_problem, loss_delta, per_column
 
 __all__ = ["duality_gap", "kkt_violation", "objective"]
@@ -56,6 +56,29 @@ class Certificate:
         return self.gap / np.maximum(np.abs(self.objective), np.finfo(float).tiny)
 
 
+def column_norms(theta: np.ndarray) -> np.ndarray:
+    """Euclidean norms of the columns of ``theta`` without overflow or underflow.
+
+    The plain sum of squares (no temporary copy of ``theta``) where it is safely in
+    range; columns whose sum of squares overflows or underflows are divided by their
+    largest entry first, as BLAS ``nrm2`` does.
+    """
+    with np.errstate(over="ignore", under="ignore"):
+        sq = np.einsum("ij,ij->j", theta, theta)
+    tiny = np.finfo(float).tiny
+    bad = np.flatnonzero(~np.isfinite(sq) | ((sq < 1e4 * tiny) & (sq > 0)) | np.isnan(sq))
+    out = np.sqrt(sq)
+    for j in bad:  # rare: extreme scales
+        col = theta[:, j]
+        top = np.max(np.abs(col))
+        out[j] = top * np.linalg.norm(col / top) if top > 0 and np.isfinite(top) else top
+    if theta.shape[0] and np.any(sq == 0):  # underflow to zero of a nonzero column
+        for j in np.flatnonzero(sq == 0):
+            top = np.max(np.abs(theta[:, j]))
+            out[j] = top * np.linalg.norm(theta[:, j] / top) if top > 0 else 0.0
+    return out
+
+
 def kkt_from_gradient(
     xi: np.ndarray, grad: np.ndarray, lam: np.ndarray, col_norms: np.ndarray, psi_norm: np.ndarray
 ) -> np.ndarray:
@@ -64,23 +87,46 @@ def kkt_from_gradient(
     ``xi``, ``grad`` and ``lam`` are (p, n), ``col_norms`` (p,), ``psi_norm`` (n,).
     A zero column of ``Theta`` contributes nothing unless its coefficient is nonzero
     while penalised, which is infinitely far from optimal.
+
+    The proximal-gradient residual ``|xi - S(xi + t g, t lam)| / t`` is evaluated branch
+    by branch (``|g - lam|``, ``|g + lam|`` or ``|xi| / t``) rather than as a difference:
+    ``xi + t g`` rounds to ``xi`` whenever ``t |g|`` is below the last bit of ``xi``, and
+    the difference would then certify a non-stationary point with a violation of 0.
+    ``t = 1 / ||Theta_j||^2`` enters as two divisions by the norm (no overflow).
     """
-    d2 = (col_norms**2)[:, None]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t = np.where(d2 > 0, 1.0 / d2, 0.0)
-        step = np.abs(xi - soft_threshold(xi + t * grad, lam * t)) * d2
-        step = np.where(d2 > 0, step, np.where((xi != 0) & (lam > 0), np.inf, 0.0))
-        scale = np.maximum(lam, col_norms[:, None] * psi_norm[None, :])
+    nrm = col_norms[:, None]
+    with np.errstate(divide="ignore", invalid="ignore", over="ignore"):
+        t_g = np.where(nrm > 0, grad / nrm / nrm, 0.0)
+        t_lam = np.where(nrm > 0, lam / nrm / nrm, 0.0)
+        u = xi + t_g
+        step = np.where(
+            u > t_lam,
+            np.abs(grad - lam),
+            np.where(u < -t_lam, np.abs(grad + lam), np.abs(xi) * nrm * nrm),
+        )
+        step = np.where(nrm > 0, step, np.where((xi != 0) & (lam > 0), np.inf, 0.0))
+        scale = np.maximum(lam, nrm * psi_norm[None, :])
         rel = np.where(scale > 0, step / scale, np.where(step > 0, np.inf, 0.0))
     # Non-finite coefficients or residuals are never certified.
     rel = np.where(np.isnan(step) | np.isnan(scale), np.inf, rel)
     return rel.max(axis=0)
 
 
-def rounding_free(r: np.ndarray, y: np.ndarray, abs_theta, xi: np.ndarray) -> np.ndarray:
+_ROW_CHUNK = 4096  # rows of |Theta| formed at a time
+
+
+def _abs_product(theta: np.ndarray, axi: np.ndarray, rows=None) -> np.ndarray:
+    """``|Theta[rows]| @ axi`` in row chunks, never forming ``|Theta|`` whole."""
+    idx = np.arange(theta.shape[0]) if rows is None else rows
+    out = np.empty((idx.size, axi.shape[1]))
+    for lo in range(0, idx.size, _ROW_CHUNK):
+        out[lo : lo + _ROW_CHUNK] = np.abs(theta[idx[lo : lo + _ROW_CHUNK]]) @ axi
+    return out
+
+
+def rounding_free(r: np.ndarray, y: np.ndarray, theta: np.ndarray, xi: np.ndarray) -> np.ndarray:
     """``r`` with residuals at the level of floating-point error set to zero.
 
-    ``abs_theta`` is ``|Theta|`` or a function returning it (called only when needed).
     Computing ``r_i = y_i - Theta_i xi`` carries an error up to
     about ``p eps (|y_i| + |Theta_i| |xi|)``, and a backward-stable exact fit leaves
     residuals of about ``eps (||y|| + || |Theta| |xi| ||)`` in norm.  Entries below
@@ -89,17 +135,32 @@ def rounding_free(r: np.ndarray, y: np.ndarray, abs_theta, xi: np.ndarray) -> np
     exact fit uncertifiable (its gradient would be a sum of rounding noise).
     ``|Theta_i| |xi|`` enters only up to ``max |y|``: rounding from huge cancelling
     coefficients (e.g. along collinear columns) is not forgiven, such a point is simply
-    not certified.
+    not certified.  ``|Theta| |xi|`` is evaluated only on the rows (and columns) where a
+    residual could be that small, a chunk of rows at a time.
     """
     c = 16 * (xi.shape[0] + 1) * np.finfo(float).eps
     ymax = np.abs(y).max(axis=0)
-    if np.all(np.abs(r) > 2 * c * ymax):  # above every possible bound: nothing to do
+    bound = 2 * c * ymax  # |y_i| + min(|Theta_i| |xi|, ymax) <= 2 ymax
+    small = np.abs(r) <= bound
+    # A whole column can be exact only if ||r|| <= 2 c (||y|| + sqrt(m) ymax) (the
+    # entries zeroed first are each below c times their scale).
+    maybe_exact = np.linalg.norm(r, axis=0) <= 2 * c * (
+        np.linalg.norm(y, axis=0) + np.sqrt(r.shape[0]) * ymax
+    )
+    if not (small.any() or maybe_exact.any()):  # above every possible bound
         return r
-    abs_theta = abs_theta() if callable(abs_theta) else abs_theta
-    scale = np.abs(y) + np.minimum(abs_theta @ np.abs(xi), ymax)
-    r = np.where(np.abs(r) <= c * scale, 0.0, r)
-    exact = np.linalg.norm(r, axis=0) <= c * np.linalg.norm(scale, axis=0)
-    return np.where(exact, 0.0, r)
+    axi = np.abs(xi)
+    r = r.copy()
+    rows = np.flatnonzero(small.any(axis=1))
+    if rows.size:
+        scale = np.abs(y[rows]) + np.minimum(_abs_product(theta, axi, rows), ymax)
+        r[rows] = np.where(np.abs(r[rows]) <= c * scale, 0.0, r[rows])
+    cols = np.flatnonzero(maybe_exact)
+    if cols.size:
+        scale = np.abs(y[:, cols]) + np.minimum(_abs_product(theta, axi[:, cols]), ymax[cols])
+        exact = np.linalg.norm(r[:, cols], axis=0) <= c * np.linalg.norm(scale, axis=0)
+        r[:, cols[exact]] = 0.0
+    return r
 
 
 def certify(
@@ -116,9 +177,9 @@ def certify(
     """
     lam = np.broadcast_to(lam, xi.shape)
     if col_norms is None:
-        col_norms = np.linalg.norm(theta, axis=0)
+        col_norms = column_norms(theta)
     r = y - theta @ xi
-    psi = huber_psi(rounding_free(r, y, lambda: np.abs(theta), xi), delta)
+    psi = huber_psi(rounding_free(r, y, theta, xi), delta)
     g = theta.T @ psi
     obj = huber(r, delta).sum(axis=0) + (lam * np.abs(xi)).sum(axis=0)
     psi_norm = np.linalg.norm(psi, axis=0)

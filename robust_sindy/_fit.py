@@ -23,6 +23,11 @@ from .solvers import admm, newton, reference, stls
 __all__ = ["METHODS", "ConvergenceWarning", "FitResult", "fit"]
 
 METHODS = ("admm", "cvxpy", "stls", "ols")
+#: Relative KKT tolerance of the least-squares certificates (OLS, STLS).
+LS_TOL = 1e-8
+#: Relative KKT tolerance for the reference solvers: interior-point solutions at gap
+#: tolerance 1e-10 reach about 1e-6 (their coefficients near exact zeros are not zero).
+CVXPY_TOL = 1e-5
 
 
 class ConvergenceWarning(UserWarning):
@@ -64,6 +69,14 @@ class FitResult:
         The solver's word on each column.
     info : dict
         Solver-specific extras (e.g. ADMM Newton-finish steps).
+    certificate : str
+        What ``converged`` certifies, i.e. the problem the method solves:
+        ``"huber-lasso KKT"`` (admm, cvxpy; the same as ``kkt``), ``"least-squares
+        normal equations"`` (ols) or ``"STLS fixed point"`` (stls: a stable support and
+        least-squares optimality on it).
+    certificate_kkt : ndarray, shape (n,)
+        Relative KKT violation of that problem per column (``kkt`` always refers to the
+        Huber-Lasso problem that ``delta``, ``lam`` and ``loss`` define).
     """
 
     coef: np.ndarray
@@ -83,6 +96,8 @@ class FitResult:
     dual: np.ndarray
     messages: list[str]
     info: dict = field(default_factory=dict)
+    certificate: str = "huber-lasso KKT"
+    certificate_kkt: np.ndarray | None = None
 
     def __repr__(self) -> str:
         state = "converged" if self.converged else "NOT converged"
@@ -189,8 +204,9 @@ def fit(
         max_iter, eps_abs, eps_rel, tol, gap_tol, check_every, newton_steps,
         warm_start`` (see :func:`robust_sindy.solvers.solve_admm`;
         ``robust_sindy.PAPER_ADMM_OPTIONS`` reproduces the paper's settings).
-        CVXPY: ``tol`` (certificate tolerance, default 1e-6), ``verbose`` and settings
-        passed to the solver.  STLS: ``threshold`` (0.05), ``max_sweeps`` (5000).
+        CVXPY: ``tol`` (tolerance of its KKT certificate, 1e-5), ``verbose`` and settings
+        passed to the solver.  STLS: ``threshold`` (0.05), ``max_sweeps`` (5000),
+        ``tol``; OLS: ``tol`` (tolerance of their least-squares certificates, 1e-8).
 
     Returns
     -------
@@ -235,7 +251,7 @@ def fit(
     if method != "cvxpy" and solver is not None:
         raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
 
-    tol, gap_tol = np.inf, np.inf
+    gap_tol = 0.0  # only the fast path also accepts a certified duality gap
     t0 = time.perf_counter()
     if method == "admm":
         opts = _admm_options(options, theta, y, one_d, loss)
@@ -246,10 +262,11 @@ def fit(
         solver_name = "clarabel" if solver is None else solver
         if solver_name not in reference.SOLVERS:
             raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
-        tol = check_positive(options.pop("tol", 1e-6), "tol")
+        tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
         out = reference.solve_cvxpy(theta, y, delta_k, lam_k, solver=solver_name, **options)
     elif method == "stls":
-        _reject_unknown(options, {"threshold", "max_sweeps"}, "stls")
+        _reject_unknown(options, {"threshold", "max_sweeps", "tol"}, "stls")
+        tol = check_positive(options.get("tol", LS_TOL), "tol")
         threshold = options.get("threshold", 0.05)
         if isinstance(threshold, bool) or not np.isfinite(threshold) or threshold < 0:
             raise ValueError(f"threshold must be a finite number >= 0; got {threshold!r}")
@@ -257,13 +274,20 @@ def fit(
         out = stls.solve_stls(theta, y, threshold=float(threshold), max_sweeps=sweeps)
         solver_name = "stls"
     else:
-        _reject_unknown(options, set(), "ols")
+        _reject_unknown(options, {"tol"}, "ols")
+        tol = check_positive(options.get("tol", LS_TOL), "tol")
         out = stls.solve_ols(theta, y)
         solver_name = "ols"
     solve_time = time.perf_counter() - t0
 
     cert = certify(theta, y, out.coef, delta_k, lam_k if lam_k.ndim == 2 else lam_k[None, :])
-    column_ok = out.converged & ((cert.kkt <= tol) | (cert.rel_gap <= gap_tol))
+    certificate, own_kkt = "huber-lasso KKT", cert.kkt
+    if method in ("ols", "stls"):
+        certificate, own_kkt = _least_squares_kkt(theta, y, out.coef, method)
+    if method == "cvxpy":  # the certificate decides, not the solver's status
+        column_ok = own_kkt <= tol
+    else:
+        column_ok = out.converged & ((own_kkt <= tol) | (cert.rel_gap <= gap_tol))
     if not column_ok.all():
         bad = np.flatnonzero(~column_ok).tolist()
         stalled = out.info.get("stalled")
@@ -290,11 +314,18 @@ def fit(
         elif method == "cvxpy":
             other = "osqp" if solver_name == "clarabel" else "clarabel"
             advice = f"try solver={other!r} or method='admm'"
-        else:
+        elif method == "stls" and not out.converged[bad].all():
             advice = "increase max_sweeps"
+        else:
+            advice = (
+                "the least-squares solution could not be certified to "
+                f"tol={tol:g} in floating point (an ill-conditioned or rank-deficient "
+                "library); rescale the states, drop collinear terms, or pass a larger tol"
+            )
         warnings.warn(
             f"{method} ({solver_name}) did not certify columns {bad} "
-            f"(relative KKT {', '.join(f'{v:.1e}' for v in cert.kkt[bad])}); "
+            f"({certificate}: relative violation "
+            f"{', '.join(f'{v:.1e}' for v in own_kkt[bad])}, tol {tol:g}); "
             f"returning the last iterate. Try: {advice}.",
             ConvergenceWarning,
             stacklevel=2,
@@ -323,4 +354,21 @@ def fit(
         dual=cert.psi,
         messages=out.messages,
         info=out.info,
+        certificate=certificate,
+        certificate_kkt=own_kkt,
     )
+
+
+def _least_squares_kkt(theta, y, coef, method):
+    """Relative KKT violation of least squares (``delta = inf``, ``lam = 0``): on all
+    columns of ``theta`` for OLS, on each column's support for STLS (its fixed point)."""
+    n = y.shape[1]
+    inf, zero = np.full(n, np.inf), np.zeros((1, n))
+    if method == "ols":
+        return "least-squares normal equations", certify(theta, y, coef, inf, zero).kkt
+    kkt = np.zeros(n)
+    for k in range(n):
+        s = coef[:, k] != 0
+        if s.any():
+            kkt[k] = certify(theta[:, s], y[:, [k]], coef[s][:, [k]], inf[:1], zero[:, :1]).kkt[0]
+    return "STLS fixed point", kkt

@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 
@@ -64,3 +66,56 @@ def test_non_finite_solver_output_is_never_certified():
     cert = certify(theta, y, xi, np.ones(y.shape[1]), np.ones((1, y.shape[1])))
     assert cert.kkt[0] == np.inf
     assert np.isfinite(cert.kkt[1:]).all()
+
+
+def _outlier_problem():
+    rng = np.random.default_rng(2)
+    theta = rng.normal(size=(60, 4))
+    y = theta @ [1.0, 0, -2, 0] + 0.01 * rng.normal(size=60)
+    y[::10] += 30
+    return theta, y
+
+
+@pytest.mark.parametrize("scale", [1.0, 1e16, 1e-150, 1e150])
+def test_rounding_never_certifies_the_least_squares_point_of_a_tiny_delta(scale):
+    # With delta far below the residuals the optimum is a least-absolute-deviation fit;
+    # the least-squares point is far from stationary, however small t * g is next to xi.
+    theta, y = _outlier_problem()
+    ls = np.linalg.lstsq(theta, y, rcond=None)[0]
+    kkt = rs.kkt_violation(theta * scale, y * scale, ls, delta=1e-16 * scale, lam=0.0)
+    assert kkt[0] > 1e-2
+
+
+@pytest.mark.parametrize("scale", [1e-150, 1e-50, 1e50, 1e150])
+def test_fast_path_is_certified_and_invariant_at_extreme_library_scales(scale):
+    theta, y = _outlier_problem()
+    base = rs.fit(theta, y, delta=1.0, lam=1.0)
+    res = rs.fit(theta * scale, y, delta=1.0, lam=scale)  # same problem, xi / scale
+    assert res.converged and res.kkt.max() <= 1e-8
+    np.testing.assert_allclose(res.coef * scale, base.coef, rtol=1e-6, atol=1e-9)
+
+
+def test_every_method_reports_the_certificate_of_its_own_problem():
+    theta, y = _outlier_problem()
+    ols = rs.fit(theta, y, method="ols")
+    stls = rs.fit(theta, y, method="stls", threshold=0.05)
+    assert ols.certificate == "least-squares normal equations"
+    assert stls.certificate == "STLS fixed point"
+    assert ols.converged and ols.certificate_kkt.max() <= 1e-8
+    assert stls.converged and stls.certificate_kkt.max() <= 1e-8
+    # Their Huber-Lasso KKT (for the default delta, lam) is far from zero: it is reported
+    # but it is not what their `converged` means.
+    assert ols.kkt.max() > 1e-2
+    # The reference is judged by its KKT certificate, not by the solver's status.
+    ref = rs.fit(theta, y, method="cvxpy", delta=1.0, lam=1e300)
+    assert ref.converged and np.all(ref.coef == 0)
+
+
+def test_reference_is_not_converged_where_its_certificate_fails():
+    theta, y = _outlier_problem()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.ConvergenceWarning)
+        ref = rs.fit(theta, y, method="cvxpy", delta=1e-13, lam=0.0)
+    assert ref.converged == bool(ref.kkt.max() <= 1e-5)
+    if not ref.converged:
+        assert ref.certificate_kkt.max() > 1e-5

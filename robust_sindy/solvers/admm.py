@@ -46,7 +46,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from .._certificates import certify
+from .._certificates import certify, column_norms
 from .._losses import huber, huber_prox, huber_psi, soft_threshold
 from ._base import SolverOutput
 from .newton import Prepared, newton, prepare
@@ -173,7 +173,7 @@ def solve_admm(
     lam_s = lam[nz] / scale[:, None]
     # Exact per-column rescaling y/c, delta/c, lam/c (solution xi/c) with c = delta, so
     # every column is solved in units of its Huber threshold (rms of y for the squared loss).
-    c = np.where(np.isfinite(delta), delta, np.sqrt(np.mean(y**2, axis=0)))
+    c = np.where(np.isfinite(delta), delta, column_norms(y) / np.sqrt(max(y.shape[0], 1)))
     c = np.where(c > 0, c, 1.0)
     y = y / c
     delta = delta / c

@@ -46,7 +46,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from .._certificates import kkt_from_gradient, rounding_free
+from .._certificates import column_norms, kkt_from_gradient, rounding_free
 from .._losses import huber, huber_psi, soft_threshold
 from ._base import SolverOutput
 
@@ -75,14 +75,7 @@ class Prepared:
     lipschitz: float
     equilibrate: bool
     kappa: float
-    _abs_a: np.ndarray | None = None
     _factor: tuple | None = None
-
-    def abs_a(self) -> np.ndarray:
-        """``|A|``, computed on first use (only certificates of near-exact fits need it)."""
-        if self._abs_a is None:
-            self._abs_a = np.abs(self.A)
-        return self._abs_a
 
     def condition(self) -> float:
         """2-norm condition number of the equilibrated library, from its Gram matrix (whose
@@ -101,13 +94,13 @@ class Prepared:
 
 def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
     """Equilibrate ``theta`` and form its Gram matrix once (pass as ``prepared``)."""
-    norms = np.sqrt(np.einsum("ij,ij->j", theta, theta))
+    norms = column_norms(theta)  # no overflow for entries near 1e200
     nz = norms > 0
     scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
-    A = theta[:, nz] / scale
+    A = (theta if nz.all() else theta[:, nz]) / scale
     G = A.T @ A
     lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny) if G.size else 1.0
-    a_norms = np.sqrt(np.einsum("ij,ij->j", A, A))
+    a_norms = column_norms(A)
     return Prepared(nz, scale, A, G, a_norms, lipschitz, equilibrate, kappa)
 
 
@@ -151,8 +144,13 @@ def line_search(r, q, x, d, lam, delta) -> float:
     t_a = (rq - delta) / qq  # residual crosses +delta
     t_b = (rq + delta) / qq  # residual crosses -delta
     lo, hi = np.minimum(t_a, t_b), np.maximum(t_a, t_b)
+    # Where delta is below the resolution of the residual the quadratic zone has no
+    # width in floating point: the residual crosses it as a kink (slope jump 2 |q| delta),
+    # and its huge cancelling quadratic terms must not enter the sums.
+    kink = hi - lo <= 8 * np.finfo(float).eps * np.maximum(np.abs(lo), np.abs(hi))
+    hi = np.where(kink, lo, hi)
     before = (-absq * delta, np.zeros_like(qq))
-    quad = (-qq * rq, qq * qq)
+    quad = (np.where(kink, 0.0, -qq * rq), np.where(kink, 0.0, qq * qq))
     after = (absq * delta, np.zeros_like(qq))
     # A residual exactly at +-delta has slope continuous there, so "<= 0" is harmless.
     zone_quad = (lo <= 0) & (hi > 0)
@@ -161,9 +159,13 @@ def line_search(r, q, x, d, lam, delta) -> float:
     b0 = np.where(zone_quad, quad[1], 0.0).sum()
     s0 = np.where(x != 0, np.sign(x), np.sign(d))
     a0 += (lam * s0) @ d
-    ev_t = [lo[lo > 0], hi[hi > 0]]
-    ev_a = [(quad[0] - before[0])[lo > 0], (after[0] - quad[0])[hi > 0]]
-    ev_b = [(quad[1] - before[1])[lo > 0], (after[1] - quad[1])[hi > 0]]
+    smooth = ~kink
+    ev_t = [lo[(lo > 0) & smooth], hi[hi > 0]]
+    ev_a = [
+        (quad[0] - before[0])[(lo > 0) & smooth],
+        np.where(kink, after[0] - before[0], after[0] - quad[0])[hi > 0],
+    ]
+    ev_b = [(quad[1] - before[1])[(lo > 0) & smooth], (after[1] - quad[1])[hi > 0]]
     with np.errstate(divide="ignore", invalid="ignore"):
         tz = np.where(d != 0, -x / d, -1.0)
     cross = tz > 0
@@ -338,7 +340,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
     act = np.arange(k_all)
     for step in range(max_steps + 1):
         xa, ya, la, da = x[:, act], y[:, act], lam[:, act], delta[act]
-        psi = huber_psi(rounding_free(r[:, act], ya, prepared.abs_a, xa), da)
+        psi = huber_psi(rounding_free(r[:, act], ya, A, xa), da)
         g = A.T @ psi
         passes += 1
         kkt = kkt_from_gradient(xa, g, la, norms, np.linalg.norm(psi, axis=0))
@@ -388,7 +390,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
     if cols.size:
         xc = np.where(zero[:, cols], 0.0, x[:, cols])
         rc = y[:, cols] - A @ xc
-        psi = huber_psi(rounding_free(rc, y[:, cols], prepared.abs_a, xc), delta[cols])
+        psi = huber_psi(rounding_free(rc, y[:, cols], A, xc), delta[cols])
         g = A.T @ psi
         passes += 2
         kc = kkt_from_gradient(xc, g, lam[:, cols], norms, np.linalg.norm(psi, axis=0))
@@ -425,7 +427,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
     nz, scale, A = prepared.nz, prepared.scale, prepared.A
     # Exact per-column rescaling: every column in units of its Huber threshold (of its
     # rms for the squared loss), so delta = 1 and the solution is xi / c.
-    c = np.where(np.isfinite(delta), delta, np.sqrt(np.mean(y**2, axis=0)))
+    c = np.where(np.isfinite(delta), delta, column_norms(y) / np.sqrt(max(y.shape[0], 1)))
     c = np.where(c > 0, c, 1.0)
     ys, ds = y / c, delta / c
     lam_s = lam[nz] / scale[:, None] / c
