@@ -5,6 +5,7 @@ from __future__ import annotations
 import time
 import warnings
 from dataclasses import dataclass, field
+from numbers import Real
 
 import numpy as np
 
@@ -263,12 +264,18 @@ def fit(
         if solver_name not in reference.SOLVERS:
             raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
         tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
+        reference.check_options(solver_name, options)
         out = reference.solve_cvxpy(theta, y, delta_k, lam_k, solver=solver_name, **options)
     elif method == "stls":
         _reject_unknown(options, {"threshold", "max_sweeps", "tol"}, "stls")
         tol = check_positive(options.get("tol", LS_TOL), "tol")
         threshold = options.get("threshold", 0.05)
-        if isinstance(threshold, bool) or not np.isfinite(threshold) or threshold < 0:
+        if (
+            isinstance(threshold, bool)
+            or not isinstance(threshold, Real)
+            or not np.isfinite(threshold)
+            or threshold < 0
+        ):
             raise ValueError(f"threshold must be a finite number >= 0; got {threshold!r}")
         sweeps = check_int(options.get("max_sweeps", 5000), "max_sweeps", 1)
         out = stls.solve_stls(theta, y, threshold=float(threshold), max_sweeps=sweeps)

@@ -226,13 +226,25 @@ class CustomLibrary(BaseLibrary):
     def transform(self, x) -> np.ndarray:
         x = self._check_transform_input(x)
         out = np.empty((x.shape[0], self.n_output_features_))
+        names = None
         for j, (f, args) in enumerate(self.terms_):
-            col = np.asarray(f(*(x[:, i] for i in args)), dtype=float)
+            with np.errstate(all="ignore"):  # non-finite values are reported below
+                col = np.asarray(f(*(x[:, i] for i in args)), dtype=float)
             col = np.broadcast_to(col, (x.shape[0],)) if col.ndim == 0 else col
             if col.shape != (x.shape[0],):
                 raise ValueError(
                     f"function {j} of functions returned shape {col.shape}; expected "
                     f"({x.shape[0]},): functions must act elementwise on 1-D arrays"
+                )
+            bad = ~np.isfinite(col) & np.all(np.isfinite(x[:, list(args)]), axis=1)
+            if bad.any():
+                names = self.get_feature_names() if names is None else names
+                i = int(np.flatnonzero(bad)[0])
+                raise ValueError(
+                    f"CustomLibrary feature {names[j]!r} (function {j} of functions) is "
+                    f"{col[i]} at sample {i} (inputs {x[i, list(args)].tolist()}) and at "
+                    f"{int(bad.sum())} samples in all: library functions must be finite on "
+                    "the data"
                 )
             out[:, j] = col
         return out

@@ -13,10 +13,12 @@ import itertools
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass
+from numbers import Integral, Real
 
 import numpy as np
 import scipy.integrate
 from sklearn.base import BaseEstimator, clone
+from sklearn.exceptions import NotFittedError
 from threadpoolctl import threadpool_limits
 
 from ._fit import METHODS, fit
@@ -380,7 +382,7 @@ class HuberSINDy(BaseEstimator):
     def _times(t, xs, multiple):
         if t is None:
             raise ValueError("t is required (a time step or the sample times)")
-        if np.ndim(t) == 0 and not isinstance(t, (list, tuple)):
+        if not isinstance(t, (list, tuple)) and np.ndim(t) == 0:
             dt = as_float_array(t, "t", (0,))
             if dt <= 0:
                 raise ValueError(f"t as a time step must be > 0; got {float(dt)}")
@@ -445,9 +447,7 @@ class HuberSINDy(BaseEstimator):
         feature_names : sequence of str, optional
             Names of the states then the controls (default ``x0, x1, ..., u0, ...``).
         """
-        if self.method not in METHODS:
-            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
-        self._check_selection_params()
+        self._check_params()
         xs, ts, ds, us = self._trajectories(x, t, x_dot, u, need_t=False)
         if sum(a.shape[0] for a in xs) <= SMALL_PROBLEM_SAMPLES:
             with threadpool_limits(limits=1, user_api="blas"):
@@ -595,6 +595,35 @@ class HuberSINDy(BaseEstimator):
                 out.append(self._differentiate(repaired, ti))
         return out
 
+    def _check_params(self):
+        """Every parameter checked before any work (scikit-learn style: in ``fit``)."""
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
+        if self.library is not None and not isinstance(self.library, BaseLibrary):
+            raise ValueError(
+                "library must be a robust_sindy library (e.g. PolynomialLibrary(degree=2), "
+                f"CustomLibrary(...)) or None; got {self.library!r}"
+            )
+        thr = self.threshold
+        if thr is not None and (
+            isinstance(thr, bool) or not isinstance(thr, Real) or not np.isfinite(thr) or thr < 0
+        ):
+            raise ValueError(f"threshold must be None or a finite number >= 0; got {thr!r}")
+        for name in ("refit", "progress"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False; got {getattr(self, name)!r}")
+        if not callable(self.differentiation) and self.differentiation not in _DIFFERENTIATION:
+            raise ValueError(
+                f"differentiation must be one of {tuple(_DIFFERENTIATION)} or a callable; "
+                f"got {self.differentiation!r}"
+            )
+        if self.solver_options is not None and not isinstance(self.solver_options, dict):
+            raise ValueError(f"solver_options must be a dict or None; got {self.solver_options!r}")
+        n_lams = self.n_lams
+        if isinstance(n_lams, bool) or not isinstance(n_lams, Integral) or n_lams < 2:
+            raise ValueError(f"n_lams must be an integer >= 2; got {n_lams!r}")
+        self._check_selection_params()
+
     def _check_selection_params(self):
         if not isinstance(self.screen, bool):
             raise ValueError(f"screen must be True or False; got {self.screen!r}")
@@ -728,7 +757,7 @@ class HuberSINDy(BaseEstimator):
     # ------------------------------------------------------------------ using the model
     def _check_fitted(self, what: str):
         if not hasattr(self, "coef_"):
-            raise ValueError(f"this HuberSINDy is not fitted yet: call fit before {what}")
+            raise NotFittedError(f"this HuberSINDy is not fitted yet: call fit before {what}")
 
     def get_feature_names(self) -> list[str]:
         """Names of the library features (columns of ``coef_``)."""
@@ -757,6 +786,7 @@ class HuberSINDy(BaseEstimator):
 
     def print(self, precision: int = 3) -> None:
         """Print ``(x)' = ...`` for every state."""
+        self._check_fitted("print")
         for name, eq in zip(self.feature_names_, self.equations(precision), strict=False):
             print(f"({name})' = {eq}")
 

@@ -75,3 +75,68 @@ def test_inputs_are_not_modified():
     rs.fit(theta, y)
     np.testing.assert_array_equal(theta, THETA)
     np.testing.assert_array_equal(y, Y)
+
+
+def _lorenz_data():
+    return rs.systems.Lorenz().generate(t_end=2.0)
+
+
+@pytest.mark.parametrize(
+    "call, match",
+    [
+        (lambda th, y: rs.fit(th, y, method="cvxpy", foo=1), "unknown option 'foo'"),
+        (lambda th, y: rs.fit(th, y, method="cvxpy", max_iter=1.5), "'max_iter'.*type int"),
+        (lambda th, y: rs.fit(th, y, method="cvxpy", warm_start=np.zeros(4)), "warm_start"),
+        (lambda th, y: rs.fit(th, y, method="stls", threshold="a"), "threshold"),
+        (lambda th, y: rs.fit(th, y, method="ols", tol=-1.0), "tol"),
+    ],
+)
+def test_solver_options_are_checked_before_any_work(call, match):
+    rng = np.random.default_rng(0)
+    theta = rng.normal(size=(40, 4))
+    with pytest.raises(ValueError, match=match):
+        call(theta, theta @ [1.0, 0, 2, 0])
+
+
+@pytest.mark.parametrize(
+    "params, match",
+    [
+        (dict(threshold="a"), "threshold"),
+        (dict(library="poly"), "library must be"),
+        (dict(refit="yes"), "refit"),
+        (dict(differentiation="spline"), "differentiation"),
+        (dict(n_lams=1.5), "n_lams"),
+        (dict(solver_options=[1]), "solver_options"),
+    ],
+)
+def test_estimator_parameters_are_checked_in_fit_before_any_work(params, match):
+    data = _lorenz_data()
+    with pytest.raises(ValueError, match=match):
+        rs.HuberSINDy(**params).fit(data.x, data.t)
+
+
+def test_a_custom_function_that_is_not_finite_is_named():
+    data = _lorenz_data()
+    lib = rs.CustomLibrary([np.log], names=["log(x)", "log(y)", "log(z)"])
+    with pytest.raises(ValueError, match=r"'log\(x\)'.*finite"):
+        rs.HuberSINDy(library=lib).fit(data.x, data.t)
+
+
+def test_not_fitted_is_scikit_learns_error():
+    from sklearn.exceptions import NotFittedError
+
+    for call in (
+        lambda m: m.print(),
+        lambda m: m.equations(),
+        lambda m: m.predict(np.ones((2, 3))),
+    ):
+        with pytest.raises(NotFittedError):
+            call(rs.HuberSINDy())
+
+
+def test_trajectories_of_different_lengths_with_their_own_times():
+    data = _lorenz_data()
+    model = rs.HuberSINDy().fit([data.x, data.x[:120]], t=[data.t, data.t[:120]])
+    assert model.coef_.shape == (3, 10)
+    with pytest.raises(ValueError, match="t has 40 time points but x has 120"):
+        rs.HuberSINDy().fit([data.x, data.x[:120]], t=[data.t, data.t[:40]])

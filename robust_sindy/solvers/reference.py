@@ -13,6 +13,8 @@ Each column is its own problem, solved by Clarabel (interior point, default) or 
 
 from __future__ import annotations
 
+from numbers import Real
+
 import numpy as np
 
 from ._base import SolverOutput
@@ -25,6 +27,50 @@ _SETTINGS = {
     "clarabel": dict(tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10, max_iter=500),
     "osqp": dict(eps_abs=1e-9, eps_rel=1e-9, max_iter=400_000, polishing=True),
 }
+
+
+def _solver_settings(solver: str) -> dict:
+    """Names and default values of the settings ``solver`` accepts."""
+    if solver == "clarabel":
+        import clarabel
+
+        defaults = clarabel.DefaultSettings()
+    else:
+        from osqp.ext_builtin import OSQPSettings
+
+        defaults = OSQPSettings()
+    return {a: getattr(defaults, a) for a in dir(defaults) if not a.startswith("_")}
+
+
+def check_options(solver: str, options: dict) -> None:
+    """Reject options the reference solver would choke on, naming them, before any work.
+
+    ``verbose`` and the solver's own settings (their names and types) are accepted;
+    ``warm_start`` and the fast path's options are not.
+    """
+    known = _solver_settings(solver)
+    for name, value in options.items():
+        if name == "warm_start":
+            raise ValueError("warm_start applies to method='admm' only")
+        if name not in known:
+            raise ValueError(
+                f"unknown option {name!r} for method='cvxpy' with solver={solver!r}; valid: "
+                f"'tol', 'verbose' and the solver's settings ({', '.join(sorted(known))})"
+            )
+        default = known[name]
+        if isinstance(default, bool):
+            ok = isinstance(value, bool)
+        elif isinstance(default, int):
+            ok = isinstance(value, (int, np.integer)) and not isinstance(value, bool)
+        elif isinstance(default, float):
+            ok = isinstance(value, Real) and not isinstance(value, bool)
+        else:
+            ok = True
+        if not ok:
+            raise ValueError(
+                f"option {name!r} of {solver} must be of type {type(default).__name__} "
+                f"(default {default!r}); got {value!r}"
+            )
 
 
 def solve_cvxpy(
