@@ -808,6 +808,10 @@ class HuberSINDy(BaseEstimator):
         """Coefficient of determination R^2 of the predicted derivatives (averaged)."""
         self._check_fitted("score")
         xs, ts, ds, us = self._trajectories(x, t, x_dot, u, need_t=False)
+        if sum(a.shape[0] for a in xs) < 2:
+            raise ValueError(
+                f"x has {sum(a.shape[0] for a in xs)} samples: a score needs at least 2"
+            )
         if ds is None:
             ds = [self._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
         pred = np.vstack([self.predict(a, b) for a, b in _pairs(xs, us)])
@@ -837,6 +841,10 @@ class HuberSINDy(BaseEstimator):
                 if q
                 else "u given, but the model was fitted without controls"
             )
+        if uf is not None:
+            width = np.size(uf(t[0]))
+            if width != q:
+                raise ValueError(f"u has {width} columns but the model was fitted with {q}")
 
         def rhs(s, state):
             z = state if uf is None else np.concatenate([state, uf(s)])

@@ -1,5 +1,7 @@
 """Bad input raises ValueError naming the argument; nothing is coerced silently."""
 
+import warnings
+
 import numpy as np
 import pytest
 
@@ -140,3 +142,30 @@ def test_trajectories_of_different_lengths_with_their_own_times():
     assert model.coef_.shape == (3, 10)
     with pytest.raises(ValueError, match="t has 40 time points but x has 120"):
         rs.HuberSINDy().fit([data.x, data.x[:120]], t=[data.t, data.t[:40]])
+
+
+def test_simulate_and_score_name_their_bad_inputs():
+    data = rs.systems.Drone().generate(t_end=3.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)  # short data, not the point
+        model = rs.HuberSINDy(library=rs.PolynomialLibrary(degree=1)).fit(
+            data.x, data.t, x_dot=data.x_dot, u=data.u
+        )
+    with pytest.raises(ValueError, match="u has 3 columns but the model was fitted with 2"):
+        model.simulate(data.x[0], data.t[:10], u=np.zeros((10, 3)))
+    with pytest.raises(ValueError, match="x has 0 samples"):
+        model.score(data.x[:0], x_dot=data.x_dot[:0], u=data.u[:0])
+
+
+@pytest.mark.parametrize("delta", [1e-300, 1e-100, 1e-16])
+def test_a_delta_far_below_the_residuals_is_solved_but_never_falsely_certified(delta):
+    rng = np.random.default_rng(2)
+    theta = rng.normal(size=(60, 4))
+    y = theta @ [1.0, 0, -2, 0] + 0.01 * rng.normal(size=60)
+    y[::10] += 30
+    with pytest.warns(rs.ConvergenceWarning):
+        res = rs.fit(theta, y, delta=delta, lam=0.0, max_iter=200)
+    # The least-absolute-deviation limit is reached (better than the true coefficients)...
+    assert res.objective[0] <= rs.objective(theta, y, [1.0, 0, -2, 0], delta=delta, lam=0.0)[0]
+    # ... but its KKT conditions cannot be resolved in floating point: not certified.
+    assert not res.converged and res.kkt[0] > 1e-8

@@ -196,27 +196,29 @@ def line_search(r, q, x, d, lam, delta) -> float:
 # one batched Newton step
 
 
-def inlier_gram(A: np.ndarray, G: np.ndarray, drop: np.ndarray) -> np.ndarray:
-    """``M_k = A^T diag(1 - drop_k) A`` for every column ``k`` of ``drop`` (m, k).
+def inlier_gram(A: np.ndarray, G: np.ndarray, w: np.ndarray) -> np.ndarray:
+    """``M_k = A^T diag(w_k) A`` for every column ``k`` of the row weights ``w`` (m, k),
+    each in ``[0, 1]``.
 
-    Formed as ``G`` minus the rows with ``drop > 0`` while those are few and carry
-    little of any column's norm; from the kept rows directly otherwise (no
-    cancellation when most of the Gram matrix sits in the dropped rows).
+    Formed as ``G`` minus the rows with ``w < 1`` while those are few and carry little of
+    any column's norm; from the rows with ``w > 0`` directly otherwise (no cancellation
+    when most of the Gram matrix sits in the down-weighted rows, and weights as small as
+    1e-300 keep their value).
     """
     m, p = A.shape
-    M = np.empty((drop.shape[1], p, p))
-    for k in range(drop.shape[1]):  # one BLAS product per target column
-        rows = np.flatnonzero(drop[:, k])
+    M = np.empty((w.shape[1], p, p))
+    for k in range(w.shape[1]):  # one BLAS product per target column
+        rows = np.flatnonzero(w[:, k] < 1.0)
         if 2 * rows.size <= m:
             AO = A[rows]
-            M[k] = G - (AO * drop[rows, k, None]).T @ AO
+            M[k] = G - (AO * (1.0 - w[rows, k, None])).T @ AO
             if np.min(np.diag(M[k]) / np.maximum(np.diag(G), np.finfo(float).tiny)) > (
                 1.0 - _DIRECT_GRAM
             ):
                 continue
-        keep = np.flatnonzero(drop[:, k] < 1.0)
+        keep = np.flatnonzero(w[:, k] > 0.0)
         AI = A[keep]
-        M[k] = (AI * (1.0 - drop[keep, k, None])).T @ AI
+        M[k] = (AI * w[keep, k, None]).T @ AI
     return M
 
 
@@ -236,11 +238,13 @@ def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
     top = np.where(top > 0, top, 1.0)
     idx = np.arange(M.shape[1])
     Mm[:, idx, idx] = np.where(St, diag, top[:, None])
-    w, V = np.linalg.eigh(Mm)
+    # Normalised to a unit diagonal maximum: the eigen-solver sees no tiny or huge
+    # entries (reweighted steps with delta far below the residuals have weights ~1e-300).
+    w, V = np.linalg.eigh(Mm / top[:, None, None])
     keep = w > _EIG_CUT * np.maximum(w[:, -1:], 0.0)
     b = np.where(S, rhs, 0.0).T
     c = np.einsum("kji,kj->ki", V, b)
-    c = np.where(keep, c / np.where(keep, w, 1.0), 0.0)
+    c = np.where(keep, c / np.where(keep, w * top[:, None], 1.0), 0.0)
     return np.where(S, np.einsum("kij,kj->ik", V, c), 0.0), ~keep.all(axis=1)
 
 
@@ -258,19 +262,19 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu):
     off = np.where(S, 0.0, x)
     eye = np.eye(A.shape[1])
 
-    def solve(drop, cols):
-        M = inlier_gram(A, G, drop)
+    def solve(weights, cols):
+        M = inlier_gram(A, G, weights)
         rhs = g[:, cols] - lam[:, cols] * sigma[:, cols] + np.einsum("kij,jk->ik", M, off[:, cols])
         return masked_solve(M + mu[cols, None, None] * eye, rhs, S[:, cols])
 
     everything = np.arange(r.shape[1])
-    d, deficient = solve((np.abs(r) > delta).astype(float), everything)
+    d, deficient = solve((np.abs(r) <= delta).astype(float), everything)
     if deficient.any():
         # Too few inliers to fix the support's coefficients: the reweighted
         # least-squares step, whose quadratic model majorises the Huber loss.
         j = everything[deficient]
         absr = np.maximum(np.abs(r[:, j]), np.finfo(float).tiny)
-        d[:, j] = solve(1.0 - np.minimum(1.0, delta[j] / absr), j)[0]
+        d[:, j] = solve(np.minimum(1.0, delta[j] / absr), j)[0]
     return np.where(S, d, -x)
 
 
@@ -343,7 +347,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
         psi = huber_psi(rounding_free(r[:, act], ya, A, xa), da)
         g = A.T @ psi
         passes += 1
-        kkt = kkt_from_gradient(xa, g, la, norms, np.linalg.norm(psi, axis=0))
+        kkt = kkt_from_gradient(xa, g, la, norms, column_norms(psi))
         last_kkt[act] = kkt
         better = (kkt <= tol) & (kkt < best_kkt[act])
         best[:, act[better]], best_g[:, act[better]] = xa[:, better], g[:, better]
@@ -393,7 +397,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
         psi = huber_psi(rounding_free(rc, y[:, cols], A, xc), delta[cols])
         g = A.T @ psi
         passes += 2
-        kc = kkt_from_gradient(xc, g, lam[:, cols], norms, np.linalg.norm(psi, axis=0))
+        kc = kkt_from_gradient(xc, g, lam[:, cols], norms, column_norms(psi))
         ok = kc <= tol
         x[:, cols[ok]] = xc[:, ok]
         last_kkt[cols[ok]] = kc[ok]
@@ -425,10 +429,18 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
     if prepared is None or prepared.equilibrate != equilibrate or prepared.kappa != kappa:
         prepared = prepare(theta, equilibrate=equilibrate, kappa=kappa)
     nz, scale, A = prepared.nz, prepared.scale, prepared.A
-    # Exact per-column rescaling: every column in units of its Huber threshold (of its
-    # rms for the squared loss), so delta = 1 and the solution is xi / c.
-    c = np.where(np.isfinite(delta), delta, column_norms(y) / np.sqrt(max(y.shape[0], 1)))
-    c = np.where(c > 0, c, 1.0)
+    # Exact per-column rescaling y / c, delta / c, lam / c (solution xi / c): c is the
+    # Huber threshold (the rms of y for the squared loss), or the geometric mean of the
+    # threshold and max|y| when the threshold is the smaller, so that neither y / c nor
+    # delta / c leaves the floating-point range (delta = 1e-300 max|y| is representable).
+    ymax = np.max(np.abs(y), axis=0) if y.shape[0] else np.zeros(n)
+    with np.errstate(over="ignore", under="ignore"):
+        c = np.where(
+            np.isfinite(delta),
+            np.where(delta >= ymax, delta, np.sqrt(delta) * np.sqrt(ymax)),
+            column_norms(y) / np.sqrt(max(y.shape[0], 1)),
+        )
+    c = np.where((c > 0) & np.isfinite(c), c, 1.0)
     ys, ds = y / c, delta / c
     lam_s = lam[nz] / scale[:, None] / c
     tol = opts["tol"]
