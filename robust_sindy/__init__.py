@@ -4,7 +4,8 @@ Each column of the coefficient matrix solves
 
     min_xi  sum_i H_delta(xdot_i - theta_i xi) + lam * ||xi||_1
 
-by a certified ADMM (the fast path) or a CVXPY reference; least-squares baselines
+by a certified batched Newton method with an ADMM fallback (the fast path) or a CVXPY
+reference; least-squares baselines
 (STLS, OLS) and the Lasso (``loss="squared"``) use the same entry point, :func:`fit`.
 """
 
@@ -12,6 +13,7 @@ from . import differentiation, library, metrics, noise, selection, simulate, sys
 from ._certificates import duality_gap, kkt_violation, objective
 from ._fit import METHODS, ConvergenceWarning, FitResult, fit
 from ._losses import huber, huber_prox, huber_psi, soft_threshold
+from .io import load_model
 from .library import ConcatLibrary, CustomLibrary, PolynomialLibrary
 from .model import Diagnostics, HuberSINDy, IdentificationWarning
 from .solvers.admm import PAPER_OPTIONS as PAPER_ADMM_OPTIONS
@@ -37,6 +39,7 @@ __all__ = [
     "huber_psi",
     "kkt_violation",
     "library",
+    "load_model",
     "metrics",
     "noise",
     "objective",

@@ -445,9 +445,18 @@ class HuberSINDy(BaseEstimator):
         u : array_like (m, q), or a list of them, optional
             Control inputs (noise-free, sampled with ``x``).
         feature_names : sequence of str, optional
-            Names of the states then the controls (default ``x0, x1, ..., u0, ...``).
+            Names of the states then the controls (default: the column names when ``x``
+            and ``u`` are pandas DataFrames, else ``x0, x1, ..., u0, ...``).
+
+        ``x``, ``x_dot`` and ``u`` may be pandas DataFrames (or lists of them): their
+        values are used, the column names of ``x`` and ``u`` name the states and
+        controls, and when ``t`` is omitted a datetime or timedelta index gives the
+        sample times in seconds.
         """
         self._check_params()
+        x, t, x_dot, u, frame_names = _from_frames(x, t, x_dot, u)
+        if feature_names is None:
+            feature_names = frame_names
         xs, ts, ds, us = self._trajectories(x, t, x_dot, u, need_t=False)
         if sum(a.shape[0] for a in xs) <= SMALL_PROBLEM_SAMPLES:
             with threadpool_limits(limits=1, user_api="blas"):
@@ -575,7 +584,7 @@ class HuberSINDy(BaseEstimator):
             # lam="auto": the selection stage scored its refits with a bounded budget;
             # the chosen support is refitted here in user units with the full one.
             coef = self._refit(theta[keep], y[keep], coef, options)
-        self.coef_ = coef.T
+        self.coef_ = np.ascontiguousarray(coef.T)
         self.support_ = self.coef_ != 0
         self.outliers_ = np.abs(y - theta @ coef) > self.delta_
         self.diagnostics_ = self._diagnose(th_s[keep], y_s[keep], entry_flags)
@@ -759,6 +768,13 @@ class HuberSINDy(BaseEstimator):
         if not hasattr(self, "coef_"):
             raise NotFittedError(f"this HuberSINDy is not fitted yet: call fit before {what}")
 
+    def save(self, path):
+        """Write the fitted model to ``path`` as portable JSON (:func:`robust_sindy.io.save_model`;
+        read it back with :func:`robust_sindy.load_model`)."""
+        from .io import save_model
+
+        return save_model(self, path)
+
     def get_feature_names(self) -> list[str]:
         """Names of the library features (columns of ``coef_``)."""
         self._check_fitted("get_feature_names")
@@ -790,9 +806,19 @@ class HuberSINDy(BaseEstimator):
         for name, eq in zip(self.feature_names_, self.equations(precision), strict=False):
             print(f"({name})' = {eq}")
 
-    def predict(self, x, u=None) -> np.ndarray:
-        """Derivatives predicted by the model at states ``x`` (and controls ``u``)."""
+    def predict(self, x, u=None):
+        """Derivatives predicted by the model at states ``x`` (and controls ``u``).
+
+        A pandas DataFrame ``x`` gives a DataFrame with its index and columns named
+        ``(state)'``; arrays give an array.
+        """
         self._check_fitted("predict")
+        if _is_frame(x):
+            frame = x
+            u = u.to_numpy(dtype=float) if _is_frame(u) else u
+            out = self.predict(frame.to_numpy(dtype=float), u)
+            names = self.feature_names_[: self.coef_.shape[0]]
+            return type(frame)(out, index=frame.index, columns=[f"({n})'" for n in names])
         x = as_float_array(x, "x", (1, 2))
         x = x[:, None] if x.ndim == 1 else x
         if x.shape[1] != self.coef_.shape[0]:
@@ -855,6 +881,47 @@ class HuberSINDy(BaseEstimator):
         if not sol.success:
             warnings.warn(f"simulate stopped early: {sol.message}", UserWarning, stacklevel=2)
         return sol.y.T
+
+
+def _is_frame(obj) -> bool:
+    return hasattr(obj, "columns") and hasattr(obj, "to_numpy") and hasattr(obj, "index")
+
+
+def _frame_times(frame):
+    """Seconds from the first sample of a datetime or timedelta index, else None."""
+    index = frame.index
+    if getattr(index.dtype, "kind", "") not in ("m", "M"):
+        return None
+    seconds = (index - index[0]).to_numpy().astype("timedelta64[ns]").astype(np.int64) / 1e9
+    return np.asarray(seconds, dtype=float)
+
+
+def _from_frames(x, t, x_dot, u):
+    """Values of pandas inputs, the names their columns give, and times from the index."""
+    multiple = isinstance(x, (list, tuple))
+    xl = list(x) if multiple else [x]
+    if not any(_is_frame(a) for a in xl):
+        return x, t, x_dot, u, None
+
+    def values(obj):
+        if obj is None:
+            return None
+        if isinstance(obj, (list, tuple)):
+            return [a.to_numpy(dtype=float) if _is_frame(a) else a for a in obj]
+        return obj.to_numpy(dtype=float) if _is_frame(obj) else obj
+
+    names = [str(c) for c in xl[0].columns] if _is_frame(xl[0]) else None
+    for a in xl:
+        if _is_frame(a) and names is not None and [str(c) for c in a.columns] != names:
+            raise ValueError("x: every DataFrame must have the same columns")
+    ul = None if u is None else (list(u) if isinstance(u, (list, tuple)) else [u])
+    if names is not None and ul is not None:
+        names = names + [str(c) for c in ul[0].columns] if _is_frame(ul[0]) else None
+    if t is None:
+        times = [_frame_times(a) if _is_frame(a) else None for a in xl]
+        if all(ti is not None for ti in times):
+            t = times if multiple else times[0]
+    return values(x), t, values(x_dot), values(u), names
 
 
 def _matching(values, name: str, xs: list, multiple: bool) -> list | None:

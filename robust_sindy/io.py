@@ -1,0 +1,155 @@
+"""Portable model files: a fitted :class:`HuberSINDy` as human-readable JSON (no pickle).
+
+The file holds what the model needs to predict, print and simulate (the library's
+specification and input names, the feature names, the coefficients, the number of
+controls), what it was fitted with (δ, λ, the selection threshold, the estimator's
+parameters that are plain values) and a summary of its diagnostics, with the package
+version and a format version.  A loaded model predicts, prints and simulates exactly as
+the saved one; it cannot be refitted on new data without its library's functions, so
+only libraries made of monomials (``PolynomialLibrary``, sums of them) can be saved.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import numpy as np
+
+from .library import BaseLibrary, ConcatLibrary, PolynomialLibrary
+
+__all__ = ["FORMAT", "FORMAT_VERSION", "load_model", "save_model"]
+
+FORMAT = "robust-sindy model"
+FORMAT_VERSION = 1
+
+
+def library_spec(lib: BaseLibrary) -> dict:
+    """A JSON-ready description of a library, or a ``ValueError`` naming what is not."""
+    if isinstance(lib, PolynomialLibrary):
+        inputs = None if lib.inputs is None else [_plain(v) for v in lib.inputs]
+        return {
+            "type": "polynomial",
+            "degree": int(lib.degree),
+            "include_bias": bool(lib.include_bias),
+            "inputs": inputs,
+        }
+    if isinstance(lib, ConcatLibrary):
+        return {"type": "concat", "libraries": [library_spec(sub) for sub in lib.libraries]}
+    raise ValueError(
+        f"a {type(lib).__name__} cannot be saved portably: its features are Python "
+        "functions; only PolynomialLibrary and sums of them can be written to a model file"
+    )
+
+
+def library_from_spec(spec: dict) -> BaseLibrary:
+    kind = spec.get("type")
+    if kind == "polynomial":
+        return PolynomialLibrary(spec["degree"], spec["include_bias"], spec["inputs"])
+    if kind == "concat":
+        return ConcatLibrary([library_from_spec(s) for s in spec["libraries"]])
+    raise ValueError(f"unknown library type {kind!r} in the model file")
+
+
+def _plain(value):
+    """numpy scalars and arrays as JSON values (lists, floats; inf and NaN as strings)."""
+    if isinstance(value, np.ndarray):
+        return [_plain(v) for v in value.tolist()] if value.ndim else _plain(value.item())
+    if isinstance(value, (list, tuple)):
+        return [_plain(v) for v in value]
+    if isinstance(value, (np.bool_, bool)):
+        return bool(value)
+    if isinstance(value, (np.integer, int)):
+        return int(value)
+    if isinstance(value, (np.floating, float)):
+        v = float(value)
+        return v if np.isfinite(v) else str(v)
+    return value
+
+
+def _array(value) -> np.ndarray:
+    def num(v):
+        return [num(x) for x in v] if isinstance(v, list) else float(v)
+
+    return np.array(num(value), dtype=float)
+
+
+def _fields(obj) -> dict:
+    return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+
+
+def save_model(model, path) -> Path:
+    """Write a fitted :class:`~robust_sindy.HuberSINDy` to ``path`` as JSON; returns the path."""
+    from . import __version__
+
+    model._check_fitted("save")
+    params = {
+        k: _plain(v)
+        for k, v in model.get_params(deep=False).items()
+        if k != "library" and (v is None or isinstance(v, (str, int, float, bool, np.ndarray)))
+    }
+    diagnostics = getattr(model, "diagnostics_", None)
+    data = {
+        "format": FORMAT,
+        "format_version": FORMAT_VERSION,
+        "robust_sindy_version": __version__,
+        "library": library_spec(model.library_),
+        "input_names": list(model.library_.input_names_),
+        "feature_names": list(model.feature_names_),
+        "n_control_features": int(model.n_control_features_),
+        "terms": model.library_.get_feature_names(),
+        "coef": _plain(model.coef_),
+        "delta": _plain(model.delta_),
+        "lam": _plain(model.lam_),
+        "selection_tol": _plain(getattr(model, "selection_tol_", None)),
+        "params": params,
+        "diagnostics": None
+        if diagnostics is None
+        else {
+            f.name: _plain(getattr(diagnostics, f.name)) for f in dataclasses.fields(diagnostics)
+        },
+        "equations": model.equations(),
+    }
+    path = Path(path)
+    path.write_text(json.dumps(data, indent=1) + "\n")
+    return path
+
+
+def load_model(path):
+    """Read a model file written by :func:`save_model` (or ``HuberSINDy.save``).
+
+    The returned :class:`~robust_sindy.HuberSINDy` predicts, prints and simulates like
+    the saved one; its diagnostics are the dict ``diagnostics_summary_``.
+    """
+    from .model import HuberSINDy
+
+    path = Path(path)
+    try:
+        data = json.loads(path.read_text())
+    except (OSError, json.JSONDecodeError) as exc:
+        raise ValueError(f"cannot read a model file from {str(path)!r}: {exc}") from None
+    if not isinstance(data, dict) or data.get("format") != FORMAT:
+        raise ValueError(f"{str(path)!r} is not a robust-sindy model file")
+    version = data.get("format_version")
+    if not isinstance(version, int) or version > FORMAT_VERSION:
+        raise ValueError(
+            f"{str(path)!r} has model format version {version!r}; this robust_sindy reads "
+            f"up to {FORMAT_VERSION}: upgrade robust_sindy to load it"
+        )
+    spec = data["library"]
+    model = HuberSINDy(library=library_from_spec(spec), **data["params"])
+    inputs = data["input_names"]
+    model.library_ = library_from_spec(spec).fit(np.zeros((1, len(inputs))), input_names=inputs)
+    if model.library_.get_feature_names() != data["terms"]:
+        raise ValueError(f"{str(path)!r}: the library does not rebuild the saved terms")
+    model.feature_names_ = list(data["feature_names"])
+    model.n_control_features_ = int(data["n_control_features"])
+    model.coef_ = _array(data["coef"])
+    model.support_ = model.coef_ != 0
+    model.delta_ = _array(data["delta"])
+    model.lam_ = _array(data["lam"])
+    if data.get("selection_tol") is not None:
+        model.selection_tol_ = float(data["selection_tol"])
+    model.diagnostics_summary_ = data.get("diagnostics")
+    return model

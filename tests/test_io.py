@@ -1,0 +1,82 @@
+"""Model files: JSON in, the same model out."""
+
+import json
+import warnings
+
+import numpy as np
+import pytest
+
+import robust_sindy as rs
+
+
+def _fitted(system, **kw):
+    data = system.generate(t_end=5.0)
+    with warnings.catch_warnings():
+        # Not what is tested here (the concatenated library repeats its degree-1 terms).
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        warnings.simplefilter("ignore", rs.ConvergenceWarning)
+        model = rs.HuberSINDy(**kw).fit(data.x, data.t, x_dot=data.x_dot, u=data.u)
+    return model, data
+
+
+@pytest.mark.parametrize(
+    "system, kw",
+    [
+        (rs.systems.Lorenz(), {}),
+        (rs.systems.Drone(), dict(library=rs.PolynomialLibrary(degree=1))),
+        (
+            rs.systems.Lorenz(),
+            dict(library=rs.PolynomialLibrary(degree=1) + rs.PolynomialLibrary(degree=2)),
+        ),
+    ],
+)
+def test_a_loaded_model_predicts_prints_and_simulates_like_the_saved_one(tmp_path, system, kw):
+    model, data = _fitted(system, **kw)
+    path = model.save(tmp_path / "model.json")
+    text = path.read_text()
+    assert json.loads(text)["equations"] == model.equations()  # human-readable
+    loaded = rs.load_model(path)
+    assert loaded.equations() == model.equations()
+    assert loaded.get_feature_names() == model.get_feature_names()
+    np.testing.assert_array_equal(loaded.predict(data.x, data.u), model.predict(data.x, data.u))
+    t = data.t[:50]
+    u = None if data.u is None else data.u[:50]
+    np.testing.assert_array_equal(
+        loaded.simulate(data.x[0], t, u=u), model.simulate(data.x[0], t, u=u)
+    )
+    assert loaded.diagnostics_summary_["n_samples"] == model.diagnostics_.n_samples
+
+
+def test_what_cannot_be_saved_or_loaded_fails_clearly(tmp_path):
+    model, _ = _fitted(rs.systems.Lorenz(), library=rs.CustomLibrary([np.sin]))
+    with pytest.raises(ValueError, match="CustomLibrary cannot be saved"):
+        model.save(tmp_path / "m.json")
+    model, _ = _fitted(rs.systems.Lorenz())
+    path = model.save(tmp_path / "m.json")
+    data = json.loads(path.read_text())
+    data["format_version"] = 99
+    path.write_text(json.dumps(data))
+    with pytest.raises(ValueError, match=r"format version 99.*upgrade"):
+        rs.load_model(path)
+    (tmp_path / "other.json").write_text("[1, 2]")
+    with pytest.raises(ValueError, match="not a robust-sindy model file"):
+        rs.load_model(tmp_path / "other.json")
+    with pytest.raises(ValueError, match="cannot read"):
+        rs.load_model(tmp_path / "missing.json")
+    from sklearn.exceptions import NotFittedError
+
+    with pytest.raises(NotFittedError):
+        rs.HuberSINDy().save(tmp_path / "x.json")
+
+
+def test_dataframes_in_names_out():
+    pd = pytest.importorskip("pandas")
+    data = rs.systems.Lorenz().generate(t_end=5.0)
+    index = pd.to_timedelta(data.t, unit="s")
+    x = pd.DataFrame(data.x, columns=["x", "y", "z"], index=index)
+    model = rs.HuberSINDy().fit(x)  # times from the index, names from the columns
+    assert model.feature_names_ == ["x", "y", "z"]
+    assert model.equations()[0] == "-10.000 x + 10.000 y"
+    pred = model.predict(x)
+    assert list(pred.columns) == ["(x)'", "(y)'", "(z)'"] and pred.index.equals(index)
+    np.testing.assert_array_equal(pred.to_numpy(), model.predict(data.x))
