@@ -47,7 +47,7 @@ import numpy as np
 import scipy.linalg
 
 from .._certificates import column_norms, kkt_from_gradient, rounding_free
-from .._losses import huber, huber_psi, soft_threshold
+from .._losses import huber_psi, soft_threshold
 from ._base import SolverOutput
 
 __all__ = ["Prepared", "line_search", "newton", "prepare", "solve_newton"]
@@ -63,13 +63,58 @@ FIRST_STEPS = 5  # the fast path's own Newton run may take 5x newton_steps
 _STALL_STEPS, _STALL_OBJ = 5, 1e-12
 
 
+_ROWS = 8192  # rows per chunk where the equilibrated library is formed piecewise
+
+
+class ScaledColumns:
+    """``A = Theta[:, nz] / scale`` as an operator: products and row slices on demand,
+    ``Theta`` never copied (the solvers' extra memory stays a few m x n arrays).
+
+    ``A @ x`` is ``Theta (x / scale)``; ``A.T @ v`` is ``(Theta^T (v c)) / (scale c)``
+    with ``c = 1 / max|Theta|`` (no overflow for a library of order 1e300); ``A[rows]``
+    forms those rows.
+    """
+
+    def __init__(self, theta: np.ndarray, nz: np.ndarray, scale: np.ndarray):
+        self.theta = theta if nz.all() else theta[:, nz]
+        self.scale = scale
+        top = float(np.max(np.abs(self.theta))) if self.theta.size else 1.0
+        self._c = 1.0 / top if 0 < top < np.inf else 1.0
+        self.shape = self.theta.shape
+        self.T = _Transposed(self)
+
+    def __matmul__(self, x):
+        return self.theta @ (x / (self.scale[:, None] if x.ndim == 2 else self.scale))
+
+    def __getitem__(self, rows):
+        return self.theta[rows] / self.scale
+
+    def gram(self) -> np.ndarray:
+        """``A^T A``, from row chunks of ``A``."""
+        G = np.zeros((self.shape[1], self.shape[1]))
+        for lo in range(0, self.shape[0], _ROWS):
+            block = self[lo : lo + _ROWS]
+            G += block.T @ block
+        return G
+
+
+class _Transposed:
+    def __init__(self, op: ScaledColumns):
+        self.op = op
+
+    def __matmul__(self, v):
+        op = self.op
+        out = op.theta.T @ (v * op._c)
+        return out / ((op.scale * op._c)[:, None] if out.ndim == 2 else op.scale * op._c)
+
+
 @dataclass
 class Prepared:
     """What the solvers compute from ``Theta`` alone (reusable along a path)."""
 
     nz: np.ndarray  # nonzero columns of Theta
     scale: np.ndarray  # their equilibration scales
-    A: np.ndarray  # Theta[:, nz] / scale
+    A: ScaledColumns  # Theta[:, nz] / scale, as an operator
     G: np.ndarray  # A^T A
     a_norms: np.ndarray
     lipschitz: float
@@ -97,10 +142,10 @@ def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) 
     norms = column_norms(theta)  # no overflow for entries near 1e200
     nz = norms > 0
     scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
-    A = (theta if nz.all() else theta[:, nz]) / scale
-    G = A.T @ A
+    A = ScaledColumns(theta, nz, scale)
+    G = A.gram()
     lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny) if G.size else 1.0
-    a_norms = column_norms(A)
+    a_norms = norms[nz] / scale
     return Prepared(nz, scale, A, G, a_norms, lipschitz, equilibrate, kappa)
 
 
@@ -207,15 +252,15 @@ def inlier_gram(A: np.ndarray, G: np.ndarray, w: np.ndarray) -> np.ndarray:
     """
     m, p = A.shape
     M = np.empty((w.shape[1], p, p))
-    for k in range(w.shape[1]):  # one BLAS product per target column
-        rows = np.flatnonzero(w[:, k] < 1.0)
-        if 2 * rows.size <= m:
-            AO = A[rows]
-            M[k] = G - (AO * (1.0 - w[rows, k, None])).T @ AO
-            if np.min(np.diag(M[k]) / np.maximum(np.diag(G), np.finfo(float).tiny)) > (
-                1.0 - _DIRECT_GRAM
-            ):
-                continue
+    down = np.flatnonzero((w < 1.0).any(axis=1))  # rows down-weighted in some column
+    direct = np.ones(w.shape[1], dtype=bool)
+    if 2 * down.size <= m:
+        AO = A[down]  # gathered once for all columns
+        for k in range(w.shape[1]):  # one BLAS product per target column
+            M[k] = G - (AO * (1.0 - w[down, k, None])).T @ AO
+            ratio = np.diag(M[k]) / np.maximum(np.diag(G), np.finfo(float).tiny)
+            direct[k] = np.min(ratio, initial=1.0) <= 1.0 - _DIRECT_GRAM
+    for k in np.flatnonzero(direct):
         keep = np.flatnonzero(w[:, k] > 0.0)
         AI = A[keep]
         M[k] = (AI * w[keep, k, None]).T @ AI
@@ -279,20 +324,27 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu):
 
 
 def _objective(r, x, delta, lam):
-    return huber(r, delta).sum(axis=0) + (lam * np.abs(x)).sum(axis=0)
+    """Objective per column with two m x n temporaries (``huber`` as ``c (r - c / 2)``)."""
+    c = np.clip(r, -delta, delta)
+    tmp = np.multiply(c, 0.5)
+    np.subtract(r, tmp, out=tmp)
+    tmp *= c
+    return tmp.sum(axis=0) + (lam * np.abs(x)).sum(axis=0)
 
 
-def step_lengths(A, r, x, d, g, lam, delta, lipschitz):
+def step_lengths(A, r, x, d, g, lam, delta, lipschitz, phi0=None):
     """Step lengths (k,) along ``d`` and the directions actually taken.
 
     The full step where it passes the Armijo test; otherwise the exact line search; a
     proximal-gradient direction (always a descent direction unless ``x`` is optimal)
     where ``d`` is no descent direction.  ``t = 0`` means no progress is possible.
+    ``phi0``, the objective at ``x``, is computed when not given.
     """
     q = A @ d
     s = np.where(x != 0, np.sign(x), np.sign(d))
-    slope0 = (lam * s * d).sum(axis=0) - (huber_psi(r, delta) * q).sum(axis=0)
-    full = _objective(r - q, x + d, delta, lam) <= _objective(r, x, delta, lam) + (_ARMIJO * slope0)
+    slope0 = (lam * s * d).sum(axis=0) - np.einsum("ij,ij->j", huber_psi(r, delta), q)
+    phi0 = _objective(r, x, delta, lam) if phi0 is None else phi0
+    full = _objective(r - q, x + d, delta, lam) <= phi0 + _ARMIJO * slope0
     t = np.where((slope0 < 0) & full, 1.0, 0.0)
     for k in np.flatnonzero(t == 0.0):  # rare: one column at a time
         if slope0[k] >= 0:
@@ -343,17 +395,21 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
     mu = np.zeros(k_all)
     act = np.arange(k_all)
     for step in range(max_steps + 1):
-        xa, ya, la, da = x[:, act], y[:, act], lam[:, act], delta[act]
-        psi = huber_psi(rounding_free(r[:, act], ya, A, xa), da)
+        # All columns still active: views, not copies, of the m x n arrays.
+        cols = slice(None) if act.size == k_all else act
+        xa, ya, la, da = x[:, act], y[:, cols], lam[:, act], delta[act]
+        ra = r[:, cols]
+        psi = huber_psi(rounding_free(ra, ya, A, xa), da)
         g = A.T @ psi
         passes += 1
         kkt = kkt_from_gradient(xa, g, la, norms, column_norms(psi))
+        del psi  # one m x n array less while the step is computed
         last_kkt[act] = kkt
         better = (kkt <= tol) & (kkt < best_kkt[act])
         best[:, act[better]], best_g[:, act[better]] = xa[:, better], g[:, better]
         best_kkt[act[better]] = kkt[better]
         steps[act] = step
-        obj = _objective(r[:, act], xa, da, la)
+        obj = _objective(ra, xa, da, la)
         halved = kkt < 0.5 * ref_kkt[act]
         ref_kkt[act[halved]], ref_obj[act[halved]], ref_step[act[halved]] = (
             kkt[halved],
@@ -367,10 +423,11 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
         go = (kkt > 0.1 * tol) & ~stuck
         if step == max_steps or not go.any():
             break
-        act, xa, ya, la, da, g = act[go], xa[:, go], ya[:, go], la[:, go], da[go], g[:, go]
-        ra = r[:, act]
+        if not go.all():
+            act, xa, ya, la, da, g = act[go], xa[:, go], ya[:, go], la[:, go], da[go], g[:, go]
+            ra = r[:, act]
         d = direction(A, G, T, ra, da, la, xa, g, free[:, act], mu[act])
-        t, d = step_lengths(A, ra, xa, d, g, la, da, prepared.lipschitz)
+        t, d = step_lengths(A, ra, xa, d, g, la, da, prepared.lipschitz, obj[go])
         # Damping only after a step the objective did not accept in full, relaxed again
         # after full steps (a trust-region-like rule; undamped Newton near the optimum).
         mu[act] = np.where(t == 1.0, 0.1 * mu[act], np.maximum(10 * mu[act], _LM * kkt[go]))
@@ -381,7 +438,10 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
             break
         act = act[moving]
         x[:, act] = xa[:, moving] + t[moving] * d[:, moving]
-        r[:, act] = y[:, act] - A @ x[:, act]
+        if act.size == k_all:
+            r = y - A @ x
+        else:
+            r[:, act] = y[:, act] - A @ x[:, act]
         passes += 1
     certified = np.isfinite(best_kkt)
     x = np.where(certified, best, x)
