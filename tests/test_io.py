@@ -80,3 +80,15 @@ def test_dataframes_in_names_out():
     pred = model.predict(x)
     assert list(pred.columns) == ["(x)'", "(y)'", "(z)'"] and pred.index.equals(index)
     np.testing.assert_array_equal(pred.to_numpy(), model.predict(data.x))
+
+
+def test_the_lynx_hare_data_ship_with_the_package():
+    from robust_sindy.datasets import load_lynx_hare
+
+    data = load_lynx_hare()
+    assert data.x.shape == (21, 2) and data.names == ["hare", "lynx"]
+    np.testing.assert_array_equal(data.t, np.arange(1900, 1921))
+    assert data.x[0].tolist() == [30.0, 4.0] and data.x[-1].tolist() == [24.7, 8.6]
+    # 21 samples cannot carry a 6-term library: the fit says so.
+    with pytest.warns(rs.IdentificationWarning, match="samples per library term"):
+        rs.HuberSINDy().fit(data.x, data.t, feature_names=data.names)
