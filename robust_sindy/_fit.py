@@ -300,10 +300,11 @@ def fit(
         stalled = out.info.get("stalled")
         if method == "admm" and stalled is not None and stalled[bad].any():
             advice = (
-                f"columns {np.flatnonzero(stalled).tolist()} stopped where the objective no "
-                "longer changes in floating point: the library is too ill-conditioned for "
-                f"tol={opts['tol']:g} (see the messages); rescale or centre the states before "
-                "building the library, drop nearly collinear terms, or pass a larger tol"
+                f"columns {np.flatnonzero(stalled).tolist()} stopped where floating point "
+                f"cannot certify tol={opts['tol']:g} (see the messages): for an "
+                "ill-conditioned library rescale or centre the states before building it, "
+                "drop nearly collinear terms, or pass a larger tol; for a delta below the "
+                "residuals' resolution pass a larger delta"
             )
         elif method == "admm":
             advice = (

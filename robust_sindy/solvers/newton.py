@@ -482,7 +482,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
     opts = {**DEFAULT_OPTIONS, **options}
     if not opts["polish"]:
         return solve_admm(theta, y, delta, lam, prepared=prepared, **opts)
-    p = theta.shape[1]
+    m, p = theta.shape
     n = y.shape[1]
     lam = np.broadcast_to(lam, (p, n)).astype(float)
     equilibrate, kappa = opts["equilibrate"], opts["kappa"]
@@ -547,6 +547,19 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
     coef[nz] = x * c / scale[:, None]
     iterations = np.zeros(n, dtype=int)
     rho = np.full(n, np.nan)
+    # A threshold below the floating-point resolution of the residuals leaves only
+    # least-absolute-deviation points, whose KKT conditions no method can resolve (only
+    # an exact fit, which Newton certifies at once, could be certified): no fallback.
+    resolution = 16 * (p + 1) * np.finfo(float).eps * (np.max(np.abs(y), axis=0) if m else 0.0)
+    unresolvable = ~converged & (delta < resolution)
+    for k in np.flatnonzero(unresolvable):
+        messages[k] = (
+            f"not certified: delta = {delta[k]:.1e} is below the floating-point resolution "
+            f"of the residuals ({resolution[k]:.1e}), where the Huber fit is a "
+            "least-absolute-deviation fit whose optimality cannot be resolved; returning "
+            "the Newton point"
+        )
+    stalled |= unresolvable
     fallback = ~converged & ~stalled
     if fallback.any():
         j = np.flatnonzero(fallback)
