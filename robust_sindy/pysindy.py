@@ -22,6 +22,7 @@ from __future__ import annotations
 import numpy as np
 
 from ._fit import fit
+from ._scaling import Standardizer
 
 try:
     from pysindy.optimizers import BaseOptimizer
@@ -39,9 +40,14 @@ class HuberOptimizer(BaseOptimizer):
     Parameters
     ----------
     delta : float, array_like (n,) or "auto"
-        Huber threshold per target.
-    lam : float or array_like (n,)
-        L1 weight per target.
+        Huber threshold per target (default ``"auto"``: the robust-scale rule,
+        :func:`robust_sindy.selection.auto_delta`, on standardised columns).
+    lam : float, array_like (n,) or "auto"
+        L1 weight per target.  ``"auto"`` (the default) chooses it per target as
+        :class:`robust_sindy.HuberSINDy` does, by :func:`robust_sindy.selection.select`
+        on standardised library columns and targets (unit-free); ``coef_`` is then the
+        selection stage's refit on the chosen terms and ``result_`` the penalised fit
+        at the chosen ``lam`` with its certificate.
     method : {"admm", "cvxpy"}
     solver : str, optional
         For ``method="cvxpy"``.
@@ -64,8 +70,8 @@ class HuberOptimizer(BaseOptimizer):
 
     def __init__(
         self,
-        delta=1.0,
-        lam=1.0,
+        delta="auto",
+        lam="auto",
         method: str = "admm",
         solver: str | None = None,
         solver_options: dict | None = None,
@@ -88,16 +94,33 @@ class HuberOptimizer(BaseOptimizer):
         self.solver_options = solver_options
 
     def _reduce(self, x, y):
+        x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
+        options = self.solver_options or {}
+        delta, lam, coef = self.delta, self.lam, None
+        if isinstance(lam, str) and lam == "auto":
+            from .selection import auto_delta, select
+
+            y2 = y.reshape(len(y), -1)
+            scaler = Standardizer.from_data(x, y2)
+            th, ys = scaler.theta(x), scaler.y(y2)
+            if isinstance(delta, str) and delta == "auto":
+                delta_s = auto_delta(th, ys, method=self.method)
+            else:
+                delta_s = np.broadcast_to(np.asarray(delta, float), (y2.shape[1],))
+                delta_s = delta_s / scaler.y_scale
+            sel = select(th, ys, delta_s, method=self.method, solver=self.solver, **options)
+            delta, lam = scaler.delta_to_user(sel.delta), scaler.lam_to_user(sel.lam)
+            coef = scaler.coef_to_user(sel.coef)
         res = fit(
-            np.asarray(x),
-            np.asarray(y),
+            x,
+            y,
             method=self.method,
-            delta=self.delta,
-            lam=self.lam,
+            delta=delta,
+            lam=lam,
             solver=self.solver,
-            **(self.solver_options or {}),
+            **options,
         )
         self.result_ = res
-        self.coef_ = res.coef.T
+        self.coef_ = (res.coef if coef is None else coef.reshape(res.coef.shape)).T
         self.history_.append(self.coef_)
         self.iters = int(np.max(res.iterations))

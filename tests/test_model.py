@@ -176,3 +176,19 @@ def test_pysindy_interop_fits_prints_and_simulates(lorenz_data, capsys):
     assert "(x)' =" in capsys.readouterr().out
     sim = model.simulate(d.x[0], d.t[:51])
     assert np.abs(sim - d.x[:51]).max() < 0.05
+
+
+def test_pysindy_optimizer_chooses_delta_and_lam_by_default():
+    ps = pytest.importorskip("pysindy")
+    from robust_sindy.noise import contaminate
+    from robust_sindy.pysindy import HuberOptimizer
+
+    lorenz = rs.systems.Lorenz()
+    data = lorenz.generate(t_end=10.0)
+    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(1), placement="derivatives")
+    opt = HuberOptimizer()  # delta="auto", lam="auto"
+    model = ps.SINDy(optimizer=opt, feature_library=ps.PolynomialLibrary(degree=2))
+    model.fit(data.x, t=data.t, x_dot=noisy.x_dot)
+    truth = lorenz.true_coef(full=True).T != 0
+    np.testing.assert_array_equal(model.coefficients() != 0, truth)
+    assert opt.result_.converged
