@@ -560,7 +560,9 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
             "the Newton point"
         )
     stalled |= unresolvable
-    fallback = ~converged & ~stalled
+    # A stall is the floor of the Gram-based steps, not necessarily of the problem: the
+    # ADMM (whose finish restarts from its own iterates) still gets its chance.
+    fallback = ~converged & ~unresolvable
     if fallback.any():
         j = np.flatnonzero(fallback)
         rest = {k: v for k, v in opts.items() if k != "warm_start"}
