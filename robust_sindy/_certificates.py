@@ -65,17 +65,15 @@ def column_norms(theta: np.ndarray) -> np.ndarray:
     """
     with np.errstate(over="ignore", under="ignore"):
         sq = np.einsum("ij,ij->j", theta, theta)
-    tiny = np.finfo(float).tiny
-    bad = np.flatnonzero(~np.isfinite(sq) | ((sq < 1e4 * tiny) & (sq > 0)) | np.isnan(sq))
     out = np.sqrt(sq)
-    for j in bad:  # rare: extreme scales
+    if not theta.shape[0]:
+        return out
+    # Overflow, NaN, or a sum that underflowed (to zero or near it): rescale those.
+    bad = ~((sq >= 1e4 * np.finfo(float).tiny) & (sq < np.inf))
+    for j in np.flatnonzero(bad):  # rare: extreme scales or zero columns
         col = theta[:, j]
         top = np.max(np.abs(col))
-        out[j] = top * np.linalg.norm(col / top) if top > 0 and np.isfinite(top) else top
-    if theta.shape[0] and np.any(sq == 0):  # underflow to zero of a nonzero column
-        for j in np.flatnonzero(sq == 0):
-            top = np.max(np.abs(theta[:, j]))
-            out[j] = top * np.linalg.norm(theta[:, j] / top) if top > 0 else 0.0
+        out[j] = top * np.linalg.norm(col / top) if 0 < top < np.inf else top
     return out
 
 

@@ -415,11 +415,7 @@ class HuberSINDy(BaseEstimator):
             if out.shape != x.shape:
                 raise ValueError(f"differentiation returned shape {out.shape}; expected {x.shape}")
             return out
-        if how not in _DIFFERENTIATION:
-            raise ValueError(
-                f"differentiation must be one of {tuple(_DIFFERENTIATION)} or a callable; "
-                f"got {how!r}"
-            )
+        _check_differentiation(how)
         if _is_robust(how):
             screen = temporal_screen(x, t)
             return local_polynomial_derivative(screen.repaired, t, mask=~screen.flags)
@@ -621,11 +617,7 @@ class HuberSINDy(BaseEstimator):
         for name in ("refit", "progress"):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False; got {getattr(self, name)!r}")
-        if not callable(self.differentiation) and self.differentiation not in _DIFFERENTIATION:
-            raise ValueError(
-                f"differentiation must be one of {tuple(_DIFFERENTIATION)} or a callable; "
-                f"got {self.differentiation!r}"
-            )
+        _check_differentiation(self.differentiation)
         if self.solver_options is not None and not isinstance(self.solver_options, dict):
             raise ValueError(f"solver_options must be a dict or None; got {self.solver_options!r}")
         n_lams = self.n_lams
@@ -881,6 +873,13 @@ class HuberSINDy(BaseEstimator):
         if not sol.success:
             warnings.warn(f"simulate stopped early: {sol.message}", UserWarning, stacklevel=2)
         return sol.y.T
+
+
+def _check_differentiation(how) -> None:
+    if not callable(how) and how not in _DIFFERENTIATION:
+        raise ValueError(
+            f"differentiation must be one of {tuple(_DIFFERENTIATION)} or a callable; got {how!r}"
+        )
 
 
 def _is_frame(obj) -> bool:

@@ -47,9 +47,9 @@ import numpy as np
 import scipy.linalg
 
 from .._certificates import certify, column_norms
-from .._losses import huber, huber_prox, huber_psi, soft_threshold
+from .._losses import huber_prox, huber_psi, soft_threshold
 from ._base import SolverOutput
-from .newton import Prepared, newton, prepare
+from .newton import Prepared, column_objective, newton, prepare
 
 __all__ = ["DEFAULT_OPTIONS", "PAPER_OPTIONS", "solve_admm"]
 
@@ -88,14 +88,6 @@ PAPER_OPTIONS = dict(
 
 _RHO_MIN, _RHO_MAX, _MU, _TAU_MAX = 1e-10, 1e10, 10.0, 10.0
 _MAX_POLISH_INTERVAL = 100
-
-
-def _colnorm(a: np.ndarray) -> np.ndarray:
-    return np.sqrt(np.einsum("ij,ij->j", a, a))
-
-
-def _objective(r, x, delta, lam):
-    return huber(r, delta).sum(axis=0) + np.abs(lam * x).sum(axis=0)
 
 
 def solve_admm(
@@ -230,7 +222,7 @@ def solve_admm(
         # Restart ADMM from the Newton point where it is better, with consistent duals.
         j = k_local[~ok]
         rj = y_act[:, j] - A @ x[:, ~ok]
-        better = _objective(rj, x[:, ~ok], delta_act[j], lam_act[:, j]) < _objective(
+        better = column_objective(rj, x[:, ~ok], delta_act[j], lam_act[:, j]) < column_objective(
             y_act[:, j] - A @ z[:, j], z[:, j], delta_act[j], lam_act[:, j]
         )
         j, xb, rb = j[better], x[:, ~ok][:, better], rj[:, better]
@@ -278,14 +270,23 @@ def solve_admm(
         if not check:
             continue
 
-        prim = np.sqrt(_colnorm(r + q - y_act) ** 2 + _colnorm(z - xi) ** 2)
+        prim = np.sqrt(column_norms(r + q - y_act) ** 2 + column_norms(z - xi) ** 2)
         dual_vec = A.T @ np.hstack([r - r_old, ur])
         k_act = active.size
-        dual = rho_act * _colnorm(dual_vec[:, :k_act] - kappa * (z - z_old))
+        dual = rho_act * column_norms(dual_vec[:, :k_act] - kappa * (z - z_old))
         prim_scale = np.max(
-            [_colnorm(q), _colnorm(r), _colnorm(y_act), _colnorm(xi), _colnorm(z)], axis=0
+            [
+                column_norms(q),
+                column_norms(r),
+                column_norms(y_act),
+                column_norms(xi),
+                column_norms(z),
+            ],
+            axis=0,
         )
-        dual_scale = rho_act * np.maximum(_colnorm(dual_vec[:, k_act:]), kappa * _colnorm(uz))
+        dual_scale = rho_act * np.maximum(
+            column_norms(dual_vec[:, k_act:]), kappa * column_norms(uz)
+        )
         passed = (prim <= eps_abs * sq_mp + eps_rel * prim_scale) & (
             dual <= eps_abs * sq_p + eps_rel * dual_scale
         )

@@ -323,7 +323,7 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu):
     return np.where(S, d, -x)
 
 
-def _objective(r, x, delta, lam):
+def column_objective(r, x, delta, lam):
     """Objective per column with two m x n temporaries (``huber`` as ``c (r - c / 2)``)."""
     c = np.clip(r, -delta, delta)
     tmp = np.multiply(c, 0.5)
@@ -343,8 +343,8 @@ def step_lengths(A, r, x, d, g, lam, delta, lipschitz, phi0=None):
     q = A @ d
     s = np.where(x != 0, np.sign(x), np.sign(d))
     slope0 = (lam * s * d).sum(axis=0) - np.einsum("ij,ij->j", huber_psi(r, delta), q)
-    phi0 = _objective(r, x, delta, lam) if phi0 is None else phi0
-    full = _objective(r - q, x + d, delta, lam) <= phi0 + _ARMIJO * slope0
+    phi0 = column_objective(r, x, delta, lam) if phi0 is None else phi0
+    full = column_objective(r - q, x + d, delta, lam) <= phi0 + _ARMIJO * slope0
     t = np.where((slope0 < 0) & full, 1.0, 0.0)
     for k in np.flatnonzero(t == 0.0):  # rare: one column at a time
         if slope0[k] >= 0:
@@ -409,7 +409,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
         best[:, act[better]], best_g[:, act[better]] = xa[:, better], g[:, better]
         best_kkt[act[better]] = kkt[better]
         steps[act] = step
-        obj = _objective(ra, xa, da, la)
+        obj = column_objective(ra, xa, da, la)
         halved = kkt < 0.5 * ref_kkt[act]
         ref_kkt[act[halved]], ref_obj[act[halved]], ref_step[act[halved]] = (
             kkt[halved],
