@@ -9,12 +9,22 @@ reference; least-squares baselines
 (STLS, OLS) and the Lasso (``loss="squared"``) use the same entry point, :func:`fit`.
 """
 
-from . import differentiation, library, metrics, noise, selection, simulate, systems
+from . import (
+    datasets,
+    differentiation,
+    export,
+    library,
+    metrics,
+    noise,
+    selection,
+    simulate,
+    systems,
+)
 from ._certificates import duality_gap, kkt_violation, objective
 from ._fit import METHODS, ConvergenceWarning, FitResult, fit
 from ._losses import huber, huber_prox, huber_psi, soft_threshold
 from .io import load_model
-from .library import ConcatLibrary, CustomLibrary, PolynomialLibrary
+from .library import ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 from .model import Diagnostics, HuberSINDy, IdentificationWarning
 from .solvers.admm import PAPER_OPTIONS as PAPER_ADMM_OPTIONS
 
@@ -28,11 +38,14 @@ __all__ = [
     "CustomLibrary",
     "Diagnostics",
     "FitResult",
+    "FourierLibrary",
     "HuberSINDy",
     "IdentificationWarning",
     "PolynomialLibrary",
+    "datasets",
     "differentiation",
     "duality_gap",
+    "export",
     "fit",
     "huber",
     "huber_prox",

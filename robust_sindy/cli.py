@@ -1,5 +1,10 @@
-"""robust-sindy: reproduce the paper's experiments, benchmark the solvers, run the zoo.
+"""robust-sindy: identify equations from a data file, reproduce the paper, benchmark, zoo.
 
+``robust-sindy fit DATA [--time COL | --dt STEP] [--states a,b] [--controls u]
+[--library poly:2] [--derivatives COLS|METHOD] [--out DIR]`` fits ``HuberSINDy`` to a
+CSV/TSV/Parquet/NPZ table, prints the equations and diagnostics and writes the model file,
+a report and figures (default ``./fit_results``); ``robust-sindy dataset lynx_hare`` writes
+the shipped lynx-hare data as ``./lynx_hare.csv`` to try it on.
 ``robust-sindy reproduce [lorenz|drone|all] [--seeds N] [--out DIR] [--jobs J]``
 re-runs the paper's experiments over many seeds, prints the tables and writes Markdown,
 CSV and PNG files to ``DIR`` (default ``./reproduce_results``).  ``robust-sindy bench
@@ -12,6 +17,7 @@ into the package's committed results unless ``--out`` points there.
 from __future__ import annotations
 
 import argparse
+import os
 import sys
 from pathlib import Path
 
@@ -127,6 +133,72 @@ def _zoo(args) -> int:
     return 0
 
 
+def _fit(args, parser) -> int:
+    from . import fit_command
+
+    try:
+        fit_command.run(
+            args.data,
+            out=args.out,
+            time=args.time,
+            dt=args.dt,
+            states=args.states,
+            controls=args.controls,
+            library=args.library,
+            terms=args.terms or (),
+            derivatives=args.derivatives,
+            delta=args.delta,
+            lam=args.lam,
+            progress=not args.quiet,
+        )
+    except fit_command.InputError as exc:
+        parser.exit(2, f"robust-sindy fit: error: {exc}\n")
+    return 0
+
+
+def _dataset(args) -> int:
+    from importlib import resources
+
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    target = out / f"{args.name}.csv"
+    target.write_text(resources.files("robust_sindy.datasets").joinpath(target.name).read_text())
+    print(f"wrote {target}")
+    return 0
+
+
+def _count(text: str) -> int:
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"expected an integer >= 1; got {text!r}")
+    return value
+
+
+def _positive(text: str) -> float:
+    try:
+        value = float(text)
+    except ValueError:
+        value = float("nan")
+    if not np.isfinite(value) or value <= 0:
+        raise argparse.ArgumentTypeError(f"expected a finite number > 0; got {text!r}")
+    return value
+
+
+def _folder(text: str) -> str:
+    path = Path(text)
+    if path.exists() and not path.is_dir():
+        raise argparse.ArgumentTypeError(f"{text!r} is a file, not a folder")
+    probe = path
+    while not probe.exists():
+        probe = probe.parent
+    if not os.access(probe, os.W_OK):
+        raise argparse.ArgumentTypeError(f"{text!r}: {str(probe)!r} is not writable")
+    return text
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="robust-sindy",
@@ -134,17 +206,67 @@ def main(argv: list[str] | None = None) -> int:
         epilog="Run 'robust-sindy COMMAND --help' for a command's options.",
     )
     sub = parser.add_subparsers(dest="command", required=True)
+    fit = sub.add_parser(
+        "fit",
+        help="identify equations from a data file (CSV, TSV, Parquet, NPZ)",
+        description="Fit HuberSINDy to the columns of a table: print the equations and "
+        "diagnostics, write model.json, report.md, data.png and coefficients.png.",
+    )
+    fit.add_argument("data", help="the data file: .csv, .tsv, .txt, .parquet or .npz")
+    fit.add_argument(
+        "--time", help="the time column (default: a column named t or time)", metavar="COL"
+    )
+    fit.add_argument("--dt", type=_positive, help="uniform time step, instead of a time column")
+    fit.add_argument(
+        "--states",
+        metavar="A,B,...",
+        help="state columns (default: every other numeric column)",
+    )
+    fit.add_argument("--controls", metavar="U1,U2", help="control (input) columns")
+    fit.add_argument(
+        "--library",
+        default="poly:2",
+        help="candidate terms: poly[:DEGREE] and trig[:FREQUENCIES] joined by '+', "
+        "e.g. poly:3 or poly:2+trig (default poly:2)",
+    )
+    fit.add_argument(
+        "--terms",
+        action="append",
+        metavar="EXPR",
+        help="an extra candidate term, an expression of the columns such as 'sin(a)*b' "
+        "(repeatable)",
+    )
+    fit.add_argument(
+        "--derivatives",
+        metavar="COLS|METHOD",
+        help="measured derivative columns (one per state, in order), or how to "
+        "differentiate the states: robust (default), finite_difference, savgol",
+    )
+    fit.add_argument("--delta", default="auto", help="Huber threshold (default: automatic)")
+    fit.add_argument("--lam", default="auto", help="L1 weight (default: automatic)")
+    fit.add_argument(
+        "--out", type=_folder, default="fit_results", help="output folder (./fit_results)"
+    )
+    fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    data = sub.add_parser(
+        "dataset",
+        help="write a data set shipped with the package as CSV (lynx_hare: Hudson's Bay "
+        "Company pelts, 1900-1920)",
+    )
+    data.add_argument("name", choices=["lynx_hare"], help="the data set")
+    data.add_argument("--out", type=_folder, default=".", help="folder (default: here)")
     rep = sub.add_parser("reproduce", help="re-run the paper's experiments over many seeds")
     rep.add_argument("system", nargs="?", default="all", choices=[*rp.SYSTEMS, "all"])
-    rep.add_argument("--seeds", type=int, default=20, help="number of seeds (default 20)")
+    rep.add_argument("--seeds", type=_count, default=20, help="number of seeds (default 20)")
     rep.add_argument(
         "--out",
+        type=_folder,
         default="reproduce_results",
         help="folder for the Markdown, CSV and PNG files (./reproduce_results; "
         "--out validation/results refreshes the committed ones)",
     )
-    rep.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
-    rep.add_argument("--t-end", type=float, default=10.0, help="simulated seconds (10)")
+    rep.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")
+    rep.add_argument("--t-end", type=_positive, default=10.0, help="simulated seconds (10)")
     rep.add_argument(
         "--placement",
         default="states",
@@ -159,10 +281,15 @@ def main(argv: list[str] | None = None) -> int:
         "identifications against PySINDy, and the cost of a lam path",
     )
     ben.add_argument("--quick", action="store_true", help="tiny sizes, one timed run each")
-    ben.add_argument("--out", default="bench_results", help="output folder (./bench_results)")
-    ben.add_argument("--repeats", type=int, default=5, help="timed runs per solver (5)")
     ben.add_argument(
-        "--skip-after", type=float, default=60.0, help="skip a solver at larger sizes after (60 s)"
+        "--out", type=_folder, default="bench_results", help="output folder (./bench_results)"
+    )
+    ben.add_argument("--repeats", type=_count, default=5, help="timed runs per solver (5)")
+    ben.add_argument(
+        "--skip-after",
+        type=_positive,
+        default=60.0,
+        help="skip a solver at larger sizes after (60 s)",
     )
     ben.add_argument("--quiet", action="store_true", help="no progress bar")
     zoo_ = sub.add_parser(
@@ -171,25 +298,23 @@ def main(argv: list[str] | None = None) -> int:
         '(needs pip install "robust-sindy[zoo]")',
     )
     zoo_.add_argument("--quick", action="store_true", help="two systems, two families")
-    zoo_.add_argument("--seeds", type=int, default=1, help="seeds per case (default 1)")
-    zoo_.add_argument("--systems", type=int, default=None, help="only the first N systems")
-    zoo_.add_argument("--out", default="zoo_results", help="output folder (./zoo_results)")
-    zoo_.add_argument("--jobs", type=int, default=2, help="parallel processes (default 2)")
+    zoo_.add_argument("--seeds", type=_count, default=1, help="seeds per case (default 1)")
+    zoo_.add_argument("--systems", type=_count, default=None, help="only the first N systems")
+    zoo_.add_argument(
+        "--out", type=_folder, default="zoo_results", help="output folder (./zoo_results)"
+    )
+    zoo_.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")
     zoo_.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
+    if args.command == "fit":
+        return _fit(args, fit)
+    if args.command == "dataset":
+        return _dataset(args)
     if args.command == "zoo":
-        if args.seeds < 1 or args.jobs < 1 or (args.systems is not None and args.systems < 1):
-            parser.error("--seeds, --jobs and --systems must be >= 1")
         return _zoo(args)
     if args.command == "bench":
-        if args.repeats < 1:
-            parser.error("--repeats must be >= 1")
         return _bench(args)
     if args.command == "reproduce":
-        if args.seeds < 1:
-            parser.error("--seeds must be >= 1")
-        if args.t_end <= 0:
-            parser.error("--t-end must be > 0")
         return _reproduce(args)
     return 2  # pragma: no cover - argparse enforces the sub-command
 

@@ -5,8 +5,9 @@ specification and input names, the feature names, the coefficients, the number o
 controls), what it was fitted with (δ, λ, the selection threshold, the estimator's
 parameters that are plain values) and a summary of its diagnostics, with the package
 version and a format version.  A loaded model predicts, prints and simulates exactly as
-the saved one; it cannot be refitted on new data without its library's functions, so
-only libraries made of monomials (``PolynomialLibrary``, sums of them) can be saved.
+the saved one.  A file holds no code, so the library must be described by data:
+``PolynomialLibrary``, ``FourierLibrary``, a ``CustomLibrary`` whose features are
+expression strings, and sums of them.
 """
 
 from __future__ import annotations
@@ -17,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from .library import BaseLibrary, ConcatLibrary, PolynomialLibrary
+from .library import BaseLibrary, ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "load_model", "save_model"]
 
@@ -35,11 +36,27 @@ def library_spec(lib: BaseLibrary) -> dict:
             "include_bias": bool(lib.include_bias),
             "inputs": inputs,
         }
+    if isinstance(lib, FourierLibrary):
+        inputs = None if lib.inputs is None else [_plain(v) for v in lib.inputs]
+        return {
+            "type": "fourier",
+            "n_frequencies": int(lib.n_frequencies),
+            "include_sin": bool(lib.include_sin),
+            "include_cos": bool(lib.include_cos),
+            "inputs": inputs,
+        }
+    if isinstance(lib, CustomLibrary) and lib.portable:
+        return {
+            "type": "expressions",
+            "functions": [str(f) for f in lib.functions],
+            "names": None if lib.names is None else [str(v) for v in lib.names],
+        }
     if isinstance(lib, ConcatLibrary):
         return {"type": "concat", "libraries": [library_spec(sub) for sub in lib.libraries]}
     raise ValueError(
-        f"a {type(lib).__name__} cannot be saved portably: its features are Python "
-        "functions; only PolynomialLibrary and sums of them can be written to a model file"
+        f"a {type(lib).__name__} with Python functions cannot be saved portably (a model "
+        "file holds no code): give CustomLibrary its features as expression strings, e.g. "
+        "CustomLibrary(['sin(x) * y']), or use PolynomialLibrary and FourierLibrary"
     )
 
 
@@ -47,6 +64,12 @@ def library_from_spec(spec: dict) -> BaseLibrary:
     kind = spec.get("type")
     if kind == "polynomial":
         return PolynomialLibrary(spec["degree"], spec["include_bias"], spec["inputs"])
+    if kind == "fourier":
+        return FourierLibrary(
+            spec["n_frequencies"], spec["include_sin"], spec["include_cos"], spec["inputs"]
+        )
+    if kind == "expressions":
+        return CustomLibrary(list(spec["functions"]), spec["names"])
     if kind == "concat":
         return ConcatLibrary([library_from_spec(s) for s in spec["libraries"]])
     raise ValueError(f"unknown library type {kind!r} in the model file")

@@ -22,22 +22,114 @@ array([[1., 2., 0.]])
 
 from __future__ import annotations
 
+import ast
 from collections.abc import Callable, Sequence
 from itertools import combinations_with_replacement
 
 import numpy as np
-from sklearn.base import BaseEstimator, TransformerMixin
+from sklearn.base import BaseEstimator, TransformerMixin, clone
+from sklearn.utils import check_array
 
-from ._validation import as_float_array
+__all__ = [
+    "FUNCTIONS",
+    "BaseLibrary",
+    "ConcatLibrary",
+    "CustomLibrary",
+    "FourierLibrary",
+    "PolynomialLibrary",
+]
 
-__all__ = ["BaseLibrary", "ConcatLibrary", "CustomLibrary", "PolynomialLibrary"]
+#: Functions a :class:`CustomLibrary` expression may call, with their numpy meaning.
+FUNCTIONS = {
+    "sin": np.sin,
+    "cos": np.cos,
+    "tan": np.tan,
+    "arctan": np.arctan,
+    "sinh": np.sinh,
+    "cosh": np.cosh,
+    "tanh": np.tanh,
+    "exp": np.exp,
+    "log": np.log,
+    "sqrt": np.sqrt,
+    "abs": np.abs,
+    "sign": np.sign,
+}
+#: Constants an expression may name.
+CONSTANTS = {"pi": np.pi}
+
+_OPERATORS = (ast.Add, ast.Sub, ast.Mult, ast.Div, ast.Pow, ast.USub, ast.UAdd)
+
+
+def parse_expression(expr: str, input_names: Sequence[str]) -> tuple[ast.Expression, list[str]]:
+    """Check a feature expression and list the inputs it uses (in order of appearance).
+
+    An expression is arithmetic (``+ - * / **``) on input names, numbers, the constant
+    ``pi`` and calls of the functions in :data:`FUNCTIONS`, e.g. ``"sin(theta) * f1"``.
+    Anything else (attributes, keywords, other names) is a ``ValueError`` naming it.
+    """
+    if not isinstance(expr, str) or not expr.strip():
+        raise ValueError(f"a feature expression must be a non-empty string; got {expr!r}")
+    try:
+        tree = ast.parse(expr.strip(), mode="eval")
+    except SyntaxError as exc:
+        raise ValueError(f"feature expression {expr!r} is not valid: {exc.msg}") from None
+    used: list[str] = []
+    for node in ast.walk(tree):
+        if isinstance(node, ast.Call):
+            if not isinstance(node.func, ast.Name) or node.func.id not in FUNCTIONS:
+                raise ValueError(
+                    f"feature expression {expr!r} calls {ast.unparse(node.func)!r}; the "
+                    f"functions available are {sorted(FUNCTIONS)}"
+                )
+            if node.keywords or len(node.args) != 1:
+                raise ValueError(f"feature expression {expr!r}: {node.func.id} takes one argument")
+        elif isinstance(node, ast.Name):
+            if node.id in input_names:
+                if node.id not in used:
+                    used.append(node.id)
+            elif node.id not in FUNCTIONS and node.id not in CONSTANTS:
+                raise ValueError(
+                    f"feature expression {expr!r} names {node.id!r}, which is not one of the "
+                    f"inputs {list(input_names)} (nor a function or pi)"
+                )
+        elif isinstance(node, ast.Constant):
+            if isinstance(node.value, bool) or not isinstance(node.value, (int, float)):
+                raise ValueError(f"feature expression {expr!r} contains {node.value!r}")
+        elif not isinstance(node, (ast.Expression, ast.BinOp, ast.UnaryOp, ast.Load, *_OPERATORS)):
+            raise ValueError(
+                f"feature expression {expr!r} contains {type(node).__name__}: only arithmetic "
+                "on inputs, numbers and function calls is allowed"
+            )
+    return tree, used
+
+
+class _Rename(ast.NodeTransformer):
+    def __init__(self, mapping):
+        self.mapping = mapping
+
+    def visit_Name(self, node):
+        if node.id in self.mapping:
+            return ast.copy_location(ast.Name(self.mapping[node.id], ast.Load()), node)
+        return node
+
+
+def _substitute(tree: ast.Expression, mapping: dict) -> str:
+    """The expression's source with input names replaced by ``mapping``'s codes."""
+    import copy
+
+    return ast.unparse(_Rename(mapping).visit(copy.deepcopy(tree)))
+
+
+def _check_x(x) -> np.ndarray:
+    """The input as a finite 2-D float array, with scikit-learn's checks and messages."""
+    return check_array(x, dtype=np.float64, input_name="x")
 
 
 class BaseLibrary(TransformerMixin, BaseEstimator):
     """Common machinery: input naming, input selection, composition with ``+``."""
 
     def _fit_inputs(self, x, input_names) -> np.ndarray:
-        x = as_float_array(x, "x", (2,))
+        x = _check_x(x)
         k = x.shape[1]
         if input_names is None:
             input_names = [f"x{i}" for i in range(k)]
@@ -75,16 +167,26 @@ class BaseLibrary(TransformerMixin, BaseEstimator):
 
     def _check_transform_input(self, x) -> np.ndarray:
         self._check_fitted()
-        x = as_float_array(x, "x", (2,))
+        x = _check_x(x)
         if x.shape[1] != self.n_features_in_:
             raise ValueError(
-                f"x has {x.shape[1]} columns but the library was fitted on "
-                f"{self.n_features_in_} inputs {self.input_names_}"
+                f"X has {x.shape[1]} features, but {type(self).__name__} is expecting "
+                f"{self.n_features_in_} features as input (x: one column per input "
+                f"{self.input_names_})"
             )
         return x
 
     def fit_transform(self, x, y=None, input_names=None) -> np.ndarray:
         return self.fit(x, input_names=input_names).transform(x)
+
+    def term_codes(self, args: Sequence[str]) -> tuple[list[str], dict]:
+        """Each feature as a Python expression of the input codes ``args``.
+
+        Returns the expressions (they use the names of :data:`FUNCTIONS` and ``pi``) and
+        the extra names they need (user callables).  They serve the exported right-hand
+        side (:meth:`robust_sindy.HuberSINDy.rhs`) and :meth:`~robust_sindy.HuberSINDy.to_sympy`.
+        """
+        raise NotImplementedError(f"{type(self).__name__} does not export its terms")
 
     def __add__(self, other: BaseLibrary) -> ConcatLibrary:
         if not isinstance(other, BaseLibrary):
@@ -160,21 +262,104 @@ class PolynomialLibrary(BaseLibrary):
             out.append("*".join(parts))
         return out
 
+    def term_codes(self, args: Sequence[str]) -> tuple[list[str], dict]:
+        self._check_fitted()
+        codes = []
+        for combo in self.powers_:
+            parts = []
+            for i in dict.fromkeys(combo):
+                k = combo.count(i)
+                parts.append(args[i] if k == 1 else f"{args[i]}**{k}")
+            codes.append("*".join(parts) if parts else "1.0")
+        return codes, {}
+
+
+class FourierLibrary(BaseLibrary):
+    """``sin(k x)`` and ``cos(k x)`` for ``k = 1..n_frequencies`` of each selected input.
+
+    Parameters
+    ----------
+    n_frequencies : int
+        Highest multiple ``k`` (>= 1).
+    include_sin, include_cos : bool
+        Which of the two to include (at least one).
+    inputs : sequence of str or int, optional
+        The inputs the features are built from (all of them by default).
+
+    Notes
+    -----
+    Features come per frequency, then per input, ``sin`` before ``cos``: for
+    ``n_frequencies=2`` in ``(x, y)`` that is ``sin(x), cos(x), sin(y), cos(y),
+    sin(2*x), cos(2*x), sin(2*y), cos(2*y)``.
+    """
+
+    def __init__(
+        self,
+        n_frequencies: int = 1,
+        include_sin: bool = True,
+        include_cos: bool = True,
+        inputs=None,
+    ):
+        self.n_frequencies = n_frequencies
+        self.include_sin = include_sin
+        self.include_cos = include_cos
+        self.inputs = inputs
+
+    def fit(self, x, y=None, input_names=None) -> FourierLibrary:
+        x = self._fit_inputs(x, input_names)
+        k = self.n_frequencies
+        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
+            raise ValueError(f"n_frequencies must be an integer >= 1; got {k!r}")
+        if not (self.include_sin or self.include_cos):
+            raise ValueError("include_sin and include_cos are both False: the library is empty")
+        cols = (
+            list(range(x.shape[1]))
+            if self.inputs is None
+            else [self._index(ref, "inputs") for ref in self.inputs]
+        )
+        kinds = [f for f, on in (("sin", self.include_sin), ("cos", self.include_cos)) if on]
+        self.terms_ = [(f, j, i) for j in range(1, k + 1) for i in cols for f in kinds]
+        self.n_output_features_ = len(self.terms_)
+        return self
+
+    def transform(self, x) -> np.ndarray:
+        x = self._check_transform_input(x)
+        out = np.empty((x.shape[0], self.n_output_features_))
+        for col, (f, j, i) in enumerate(self.terms_):
+            out[:, col] = FUNCTIONS[f](j * x[:, i])
+        return out
+
+    def get_feature_names(self, input_names=None) -> list[str]:
+        self._check_fitted()
+        names = self.input_names_ if input_names is None else list(input_names)
+        return [f"{f}({names[i]})" if j == 1 else f"{f}({j}*{names[i]})" for f, j, i in self.terms_]
+
+    def term_codes(self, args: Sequence[str]) -> tuple[list[str], dict]:
+        self._check_fitted()
+        return [
+            f"{f}({args[i]})" if j == 1 else f"{f}({j}*{args[i]})" for f, j, i in self.terms_
+        ], {}
+
 
 class CustomLibrary(BaseLibrary):
     """Features given by user functions of named inputs.
 
     Parameters
     ----------
-    functions : sequence of callables
-        Each returns one feature, an array of shape (m,), from 1-D input arrays.
+    functions : sequence of callables or expression strings
+        A callable returns one feature, an array of shape (m,), from 1-D input arrays.
+        A string is an expression of the inputs by name (:func:`parse_expression`:
+        arithmetic, numbers, ``pi`` and the functions of :data:`FUNCTIONS`), e.g.
+        ``"(f1 + f2) * sin(theta)"``; it gives one feature.  A library whose functions
+        are all strings can be saved to a model file (:meth:`HuberSINDy.save`).
     names : sequence of str, optional
-        One name per function.  Derived when omitted: ``f(a, b)`` with the function's
-        ``__name__`` (``f0, f1, ...`` for lambdas).
+        One name per feature.  Derived when omitted: the expression itself, or
+        ``f(a, b)`` with a callable's ``__name__`` (``f0, f1, ...`` for lambdas).
     inputs : sequence of sequences of str or int, optional
-        For each function, the inputs it receives as positional arguments, in order.
-        When omitted every function takes one argument and is applied to each input
-        in turn (one feature per function and input).
+        For each callable, the inputs it receives as positional arguments, in order
+        (``None`` for an expression, which names its inputs itself).  When omitted every
+        callable takes one argument and is applied to each input in turn (one feature
+        per function and input).
 
     Examples
     --------
@@ -186,6 +371,13 @@ class CustomLibrary(BaseLibrary):
     ... )
     >>> lib.fit_transform(np.array([[np.pi / 2, 3.0, 1.0]]), input_names=["theta", "f1", "f2"])
     array([[4., 2.]])
+    >>> same = CustomLibrary(["(f1 + f2) * sin(theta)", "f1 - f2"])
+    >>> same.fit_transform(np.array([[np.pi / 2, 3.0, 1.0]]), input_names=["theta", "f1", "f2"])
+    array([[4., 2.]])
+    >>> same.get_feature_names()
+    ['(f1 + f2) * sin(theta)', 'f1 - f2']
+    >>> same.get_feature_names(["a", "b", "c"])
+    ['(b + c) * sin(a)', 'b - c']
     """
 
     def __init__(
@@ -200,21 +392,34 @@ class CustomLibrary(BaseLibrary):
 
     def fit(self, x, y=None, input_names=None) -> CustomLibrary:
         x = self._fit_inputs(x, input_names)
-        funcs = list(self.functions)
-        if not funcs or not all(callable(f) for f in funcs):
-            raise ValueError("functions must be a non-empty sequence of callables")
-        if self.inputs is None:
-            self.terms_ = [(f, (i,)) for f in funcs for i in range(x.shape[1])]
-        else:
-            if len(self.inputs) != len(funcs):
-                raise ValueError(
-                    f"inputs has {len(self.inputs)} entries but there are {len(funcs)} "
-                    "functions: give the arguments of each function"
-                )
-            self.terms_ = [
-                (f, tuple(self._index(ref, "inputs") for ref in args))
-                for f, args in zip(funcs, self.inputs, strict=True)
-            ]
+        funcs = list(self.functions) if not isinstance(self.functions, str) else None
+        if not funcs or not all(callable(f) or isinstance(f, str) for f in funcs):
+            raise ValueError(
+                "functions must be a non-empty sequence of callables or expression strings"
+            )
+        if self.inputs is not None and len(self.inputs) != len(funcs):
+            raise ValueError(
+                f"inputs has {len(self.inputs)} entries but there are {len(funcs)} "
+                "functions: give the arguments of each function"
+            )
+        self.terms_ = []
+        for k, f in enumerate(funcs):
+            given = None if self.inputs is None else self.inputs[k]
+            if isinstance(f, str):
+                tree, used = parse_expression(f, self.input_names_)
+                tree.source = f.strip()
+                if given is not None:
+                    raise ValueError(
+                        f"inputs[{k}] is given for the expression {f!r}: an expression names "
+                        "its inputs itself (give None)"
+                    )
+                self.terms_.append((tree, tuple(self.input_names_.index(u) for u in used)))
+            elif given is None:
+                if self.inputs is not None:
+                    raise ValueError(f"inputs[{k}] is None but functions[{k}] is a callable")
+                self.terms_.extend((f, (i,)) for i in range(x.shape[1]))
+            else:
+                self.terms_.append((f, tuple(self._index(ref, "inputs") for ref in given)))
         if self.names is not None and len(self.names) != len(self.terms_):
             raise ValueError(
                 f"names has {len(self.names)} entries but the library has "
@@ -229,7 +434,13 @@ class CustomLibrary(BaseLibrary):
         names = None
         for j, (f, args) in enumerate(self.terms_):
             with np.errstate(all="ignore"):  # non-finite values are reported below
-                col = np.asarray(f(*(x[:, i] for i in args)), dtype=float)
+                if isinstance(f, ast.Expression):
+                    scope = {**FUNCTIONS, **CONSTANTS}
+                    scope.update({self.input_names_[i]: x[:, i] for i in args})
+                    value = eval(compile(f, "<feature>", "eval"), {"__builtins__": {}}, scope)
+                else:
+                    value = f(*(x[:, i] for i in args))
+                col = np.asarray(value, dtype=float)
             col = np.broadcast_to(col, (x.shape[0],)) if col.ndim == 0 else col
             if col.shape != (x.shape[0],):
                 raise ValueError(
@@ -256,11 +467,36 @@ class CustomLibrary(BaseLibrary):
         names = self.input_names_ if input_names is None else list(input_names)
         out = []
         for f, args in self.terms_:
+            if isinstance(f, ast.Expression):
+                mapping = {self.input_names_[i]: names[i] for i in args}
+                same = all(k == v for k, v in mapping.items())
+                out.append(f.source if same else _substitute(f, mapping))
+                continue
             base = getattr(f, "__name__", "f")
             if base == "<lambda>":
                 base = f"f{list(self.functions).index(f)}"
             out.append(f"{base}({', '.join(names[i] for i in args)})")
         return out
+
+    def term_codes(self, args: Sequence[str]) -> tuple[list[str], dict]:
+        self._check_fitted()
+        names = self.get_feature_names()
+        codes, extra = [], {}
+        for j, (f, idx) in enumerate(self.terms_):
+            if isinstance(f, ast.Expression):
+                codes.append(_substitute(f, {self.input_names_[i]: args[i] for i in idx}))
+            else:
+                key = f"_custom{id(self)}_{j}"
+                extra[key] = (f, names[j])
+                codes.append(f"{key}({', '.join(args[i] for i in idx)})")
+        return codes, extra
+
+    @property
+    def portable(self) -> bool:
+        """Whether every function is an expression (the library can be saved)."""
+        return not isinstance(self.functions, str) and all(
+            isinstance(f, str) for f in self.functions
+        )
 
 
 class ConcatLibrary(BaseLibrary):
@@ -273,15 +509,26 @@ class ConcatLibrary(BaseLibrary):
         x = self._fit_inputs(x, input_names)
         if not self.libraries or not all(isinstance(lib, BaseLibrary) for lib in self.libraries):
             raise ValueError("libraries must be a non-empty sequence of libraries")
-        for lib in self.libraries:
-            lib.fit(x, input_names=self.input_names_)
-        self.n_output_features_ = sum(lib.n_output_features_ for lib in self.libraries)
+        # Fitted copies: the parameters stay as given (scikit-learn's convention).
+        self.libraries_ = [
+            clone(lib).fit(x, input_names=self.input_names_) for lib in self.libraries
+        ]
+        self.n_output_features_ = sum(lib.n_output_features_ for lib in self.libraries_)
         return self
 
     def transform(self, x) -> np.ndarray:
         x = self._check_transform_input(x)
-        return np.hstack([lib.transform(x) for lib in self.libraries])
+        return np.hstack([lib.transform(x) for lib in self.libraries_])
 
     def get_feature_names(self, input_names=None) -> list[str]:
         self._check_fitted()
-        return [name for lib in self.libraries for name in lib.get_feature_names(input_names)]
+        return [name for lib in self.libraries_ for name in lib.get_feature_names(input_names)]
+
+    def term_codes(self, args: Sequence[str]) -> tuple[list[str], dict]:
+        self._check_fitted()
+        codes, extra = [], {}
+        for lib in self.libraries_:
+            c, e = lib.term_codes(args)
+            codes += c
+            extra.update(e)
+        return codes, extra

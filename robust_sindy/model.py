@@ -279,8 +279,12 @@ class HuberSINDy(BaseEstimator):
         ``coef_ != 0``.
     library_ : BaseLibrary
         The fitted library; ``feature_names_`` are its input names (states, controls).
-    delta_, lam_ : ndarray (n_targets,)
-        The Huber thresholds and L1 weights used (chosen ones for ``"auto"``).
+    delta_ : ndarray (n_targets,)
+        The Huber thresholds used (chosen ones for ``"auto"``).
+    lam_ : ndarray (n_targets,) or (n_features, n_targets)
+        The L1 weights used.  ``lam="auto"`` chooses one weight per equation on
+        standardised library columns (``selection_.lam``); in user units that is one
+        weight per coefficient, this array.
     screened_ : ndarray of bool, shape (n_samples,)
         Samples flagged by the screen and left out of the fit (all False without it).
     temporal_ : TemporalScreening or None
@@ -767,6 +771,34 @@ class HuberSINDy(BaseEstimator):
 
         return save_model(self, path)
 
+    def export_rhs(self):
+        """The identified right-hand side as generated numpy code.
+
+        Returns an :class:`~robust_sindy.export.ExportedRHS`.  ``f = model.export_rhs()``;
+        ``f(t, x)`` (or ``f(t, x, u)``) gives the derivatives
+        at ``x`` of shape (n,) or (m, n) without the library's per-call overhead, e.g. for
+        ``scipy.integrate.solve_ivp(f, ...)``; ``f.source`` is the code, ``f.write(path)``
+        saves it as a module that needs only numpy.
+        """
+        from .export import ExportedRHS
+
+        self._check_fitted("export_rhs")
+        n = self.coef_.shape[0]
+        return ExportedRHS(
+            self.library_, self.coef_, self.feature_names_[:n], self.n_control_features_
+        )
+
+    def to_sympy(self) -> list:
+        """The right-hand sides as sympy expressions, one per state (needs sympy).
+
+        Symbols are named by the states and controls (``feature_names_``); library
+        functions given as Python callables appear as undefined sympy functions.
+        """
+        from .export import to_sympy
+
+        self._check_fitted("to_sympy")
+        return to_sympy(self.library_, self.coef_, self.library_.input_names_)
+
     def get_feature_names(self) -> list[str]:
         """Names of the library features (columns of ``coef_``)."""
         self._check_fitted("get_feature_names")
@@ -838,14 +870,21 @@ class HuberSINDy(BaseEstimator):
         ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
         return float(np.mean(1.0 - ss_res / np.where(ss_tot > 0, ss_tot, 1.0)))
 
-    def simulate(self, x0, t, u=None, **integrator_kws) -> np.ndarray:
+    def simulate(self, x0, t, u=None, *, as_frame=None, **integrator_kws):
         """Integrate the identified equations with :func:`scipy.integrate.solve_ivp`.
 
         ``u`` is a callable of ``t`` or an array sampled on ``t`` (interpolated
         linearly).  ``integrator_kws`` go to ``solve_ivp`` (default ``method="LSODA"``,
-        ``rtol=1e-10``, ``atol=1e-10``).  Returns the states at ``t``, shape (len(t), n).
+        ``rtol=1e-10``, ``atol=1e-10``).  Returns the states at ``t``, shape (len(t), n):
+        a pandas DataFrame (index ``t``, columns the state names) when ``as_frame`` is
+        true, or by default when ``x0`` is a pandas Series.  The right-hand side
+        integrated is :meth:`export_rhs`.
         """
         self._check_fitted("simulate")
+        if as_frame is None:
+            as_frame = _is_series(x0)
+        if _is_series(x0):
+            x0 = x0.to_numpy(dtype=float)
         t = check_time(t, "t")
         x0 = as_float_array(x0, "x0", (1,))
         n = self.coef_.shape[0]
@@ -864,15 +903,22 @@ class HuberSINDy(BaseEstimator):
             if width != q:
                 raise ValueError(f"u has {width} columns but the model was fitted with {q}")
 
+        f = self.export_rhs()
+
         def rhs(s, state):
-            z = state if uf is None else np.concatenate([state, uf(s)])
-            return self.library_.transform(z[None, :])[0] @ self.coef_.T
+            # One sample as a batch of one: library callables get 1-D arrays, as in fit.
+            return f(s, state[None, :], None if uf is None else uf(s)[None, :])[0]
 
         kws = {"method": "LSODA", "rtol": 1e-10, "atol": 1e-10, **integrator_kws}
         sol = scipy.integrate.solve_ivp(rhs, (t[0], t[-1]), x0, t_eval=t, **kws)
         if not sol.success:
             warnings.warn(f"simulate stopped early: {sol.message}", UserWarning, stacklevel=2)
-        return sol.y.T
+        out = sol.y.T
+        if as_frame:
+            import pandas as pd
+
+            return pd.DataFrame(out, index=pd.Index(t[: len(out)], name="t"), columns=f.state_names)
+        return out
 
 
 def _check_differentiation(how) -> None:
@@ -880,6 +926,10 @@ def _check_differentiation(how) -> None:
         raise ValueError(
             f"differentiation must be one of {tuple(_DIFFERENTIATION)} or a callable; got {how!r}"
         )
+
+
+def _is_series(obj) -> bool:
+    return hasattr(obj, "to_numpy") and hasattr(obj, "index") and not hasattr(obj, "columns")
 
 
 def _is_frame(obj) -> bool:

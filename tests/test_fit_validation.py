@@ -131,6 +131,12 @@ def test_not_fitted_is_scikit_learns_error():
         lambda m: m.print(),
         lambda m: m.equations(),
         lambda m: m.predict(np.ones((2, 3))),
+        lambda m: m.score(np.ones((5, 3)), 0.1),
+        lambda m: m.simulate(np.ones(3), np.arange(3.0)),
+        lambda m: m.save("never_written.json"),
+        lambda m: m.get_feature_names(),
+        lambda m: m.export_rhs(),
+        lambda m: m.to_sympy(),
     ):
         with pytest.raises(NotFittedError):
             call(rs.HuberSINDy())
@@ -169,3 +175,17 @@ def test_a_delta_far_below_the_residuals_is_solved_but_never_falsely_certified(d
     assert res.objective[0] <= rs.objective(theta, y, [1.0, 0, -2, 0], delta=delta, lam=0.0)[0]
     # ... but its KKT conditions cannot be resolved in floating point: not certified.
     assert not res.converged and res.kkt[0] > 1e-8
+
+
+@pytest.mark.parametrize("rel", [1e10, 1e100, 1e300])
+def test_a_delta_far_above_the_residuals_is_the_lasso_and_certified(rel):
+    """With delta beyond every residual the Huber loss is the squared loss / 2 (the Lasso);
+    the fast path certifies and agrees with the squared-loss solve."""
+    rng = np.random.default_rng(3)
+    theta = rng.normal(size=(80, 5))
+    y = theta @ [1.5, 0, -2, 0, 0.3] + 0.1 * rng.normal(size=80)
+    lam = 2.0
+    res = rs.fit(theta, y, delta=rel * np.abs(y).max(), lam=lam)
+    lasso = rs.fit(theta, y, delta=1.0, lam=lam, loss="squared")
+    assert res.converged.all() and res.kkt[0] <= 1e-8
+    np.testing.assert_allclose(res.coef, lasso.coef, rtol=1e-7, atol=1e-9)

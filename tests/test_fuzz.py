@@ -83,3 +83,27 @@ def test_invariances_hold_within_the_certificate(problem, data):
     ]:
         if res.converged:
             assert _close(value, P), (value, P)
+
+
+@settings(**SETTINGS)
+@given(problems(), st.floats(-150, 150), st.floats(-150, 150), st.sampled_from(["ols", "stls"]))
+def test_least_squares_certificates_hold_at_any_scale(problem, e_theta, e_y, method):
+    """OLS and STLS: ``converged`` means their own certificate, checked independently here
+    on the unscaled problem (numpy's least squares on all columns, or on STLS's support)."""
+    theta0, y0, _, _ = problem
+    s_t, s_y = 10.0**e_theta, 10.0**e_y
+    kw = {} if method == "ols" else {"threshold": 0.05 * s_y / s_t}
+    res = _fit(theta0 * s_t, y0 * s_y, method=method, **kw)
+    assert res.certificate in ("least-squares normal equations", "STLS fixed point")
+    coef = np.reshape(res.coef, -1) * s_t / s_y  # the same solution, unscaled
+    if not np.all(res.converged):
+        return
+    support = np.ones(theta0.shape[1], bool) if method == "ols" else coef != 0
+    if method == "stls":
+        assert np.all(np.abs(coef[support]) >= 0.05 * (1 - 1e-9))  # stable support
+    if not support.any():
+        return
+    ref, *_ = np.linalg.lstsq(theta0[:, support], y0, rcond=None)
+    r_ref = np.linalg.norm(y0 - theta0[:, support] @ ref)
+    r_got = np.linalg.norm(y0 - theta0 @ coef)
+    assert r_got <= r_ref * (1 + 1e-8) + 1e-12 * np.linalg.norm(y0), (r_got, r_ref)

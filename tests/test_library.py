@@ -83,7 +83,10 @@ def test_libraries_compose_and_clone():
         (lambda: PolynomialLibrary(inputs=["q"]).fit(np.ones((2, 2))), "inputs"),
         (lambda: PolynomialLibrary().fit(np.array([[np.nan, 1.0]])), "x contains NaN"),
         (lambda: PolynomialLibrary().transform(np.ones((2, 2))), "not fitted"),
-        (lambda: PolynomialLibrary().fit(np.ones((2, 2))).transform(np.ones((2, 3))), "columns"),
+        (
+            lambda: PolynomialLibrary().fit(np.ones((2, 2))).transform(np.ones((2, 3))),
+            "is expecting 2 features",
+        ),
         (lambda: CustomLibrary([np.sin], names=["a", "b", "c"]).fit(np.ones((2, 2))), "names"),
         (lambda: CustomLibrary([np.sin], inputs=[["x0"], ["x1"]]).fit(np.ones((2, 2))), "inputs"),
         (lambda: CustomLibrary([]).fit(np.ones((2, 2))), "functions"),
