@@ -16,6 +16,8 @@ from . import (
     library,
     metrics,
     noise,
+    outofcore,
+    parallel,
     selection,
     simulate,
     systems,
@@ -23,6 +25,7 @@ from . import (
 from ._certificates import duality_gap, kkt_violation, objective
 from ._fit import METHODS, ConvergenceWarning, FitResult, fit
 from ._losses import huber, huber_prox, huber_psi, soft_threshold
+from .ensemble import EnsembleSINDy
 from .io import load_model
 from .library import ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 from .model import Diagnostics, HuberSINDy, IdentificationWarning
@@ -37,6 +40,7 @@ __all__ = [
     "ConvergenceWarning",
     "CustomLibrary",
     "Diagnostics",
+    "EnsembleSINDy",
     "FitResult",
     "FourierLibrary",
     "HuberSINDy",
@@ -56,6 +60,8 @@ __all__ = [
     "metrics",
     "noise",
     "objective",
+    "outofcore",
+    "parallel",
     "selection",
     "simulate",
     "soft_threshold",

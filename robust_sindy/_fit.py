@@ -19,7 +19,7 @@ from ._validation import (
     check_problem,
     loss_delta,
 )
-from .solvers import admm, newton, reference, stls
+from .solvers import admm, chunked, newton, reference, stls
 
 __all__ = ["METHODS", "ConvergenceWarning", "FitResult", "fit"]
 
@@ -239,6 +239,8 @@ def fit(
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    if chunked.is_dask(theta) or chunked.is_dask(xdot):
+        return _fit_dask(theta, xdot, method, delta, lam, loss, solver, options)
     theta, y, one_d = check_problem(theta, xdot)
     n = y.shape[1]
     if isinstance(delta, str) and delta == "auto":
@@ -364,6 +366,77 @@ def fit(
         info=out.info,
         certificate=certificate,
         certificate_kkt=own_kkt,
+    )
+
+
+def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResult:
+    """:func:`fit` on Dask arrays chunked by rows (:mod:`robust_sindy.solvers.chunked`)."""
+    import dask.array as da
+
+    if method != "admm" or loss != "huber" or solver is not None:
+        raise ValueError(
+            "Dask arrays are solved by the fast path only: method='admm', loss='huber' "
+            f"(got method={method!r}, loss={loss!r})"
+        )
+    _reject_unknown(options, {"tol", "max_iter", "progress"}, "admm on Dask arrays")
+    tol = check_positive(options.get("tol", admm.DEFAULT_OPTIONS["tol"]), "tol")
+    max_iter = check_int(options.get("max_iter", 50), "max_iter", 1)
+    theta = da.asarray(theta)
+    y = da.asarray(xdot)
+    if theta.ndim != 2:
+        raise ValueError(f"theta must be 2-D; got shape {theta.shape}")
+    one_d = y.ndim == 1
+    y = y[:, None] if one_d else y
+    if y.ndim != 2 or y.shape[0] != theta.shape[0]:
+        raise ValueError(f"xdot has shape {xdot.shape} but theta has {theta.shape[0]} rows")
+    if any(not np.issubdtype(a.dtype, np.number) for a in (theta, y)):
+        raise ValueError("theta and xdot must hold real numbers")
+    n, p = y.shape[1], theta.shape[1]
+    if isinstance(delta, str):
+        raise ValueError(
+            "delta='auto' needs a robust scale of the residuals, not computed on Dask "
+            "arrays: give delta (e.g. from robust_sindy.selection.auto_delta on a sample)"
+        )
+    delta_k = loss_delta(loss, delta, n)
+    lam_k = check_lam(lam, p, n, one_d)
+    lam_full = np.broadcast_to(lam_k if lam_k.ndim == 2 else lam_k[None, :], (p, n)).copy()
+    t0 = time.perf_counter()
+    run = chunked.solve_chunked(
+        theta, y, delta_k, lam_full, tol=tol, max_iter=max_iter,
+        progress=bool(options.get("progress", False)),
+    )  # fmt: skip
+    if not run.converged.all():
+        bad = np.flatnonzero(~run.converged).tolist()
+        warnings.warn(
+            f"admm on Dask arrays did not certify columns {bad} (relative KKT "
+            f"{', '.join(f'{v:.1e}' for v in run.kkt[bad])}, tol {tol:g}); returning the "
+            "last iterate. Try: a larger max_iter, or a larger delta",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
+    r = y - theta @ da.from_array(run.coef)
+    psi = da.clip(r, -delta_k, delta_k)
+    inliers = abs(r) <= delta_k
+    return FitResult(
+        coef=run.coef[:, 0].copy() if one_d else run.coef,
+        objective=run.objective,
+        converged=bool(run.converged.all()),
+        column_converged=run.converged,
+        iterations=run.iterations,
+        kkt=run.kkt,
+        gap=run.gap,
+        solve_time=time.perf_counter() - t0,
+        method=method,
+        solver="newton-chunked",
+        loss=loss,
+        delta=delta_k,
+        lam=lam_k,
+        inliers=inliers[:, 0] if one_d else inliers,
+        dual=psi,
+        messages=run.messages,
+        info={"passes": run.passes},
+        certificate="huber-lasso KKT",
+        certificate_kkt=run.kkt,
     )
 
 

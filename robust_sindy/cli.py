@@ -28,6 +28,13 @@ from .noise import PLACEMENTS
 
 
 def _reproduce(args) -> int:
+    from .parallel import scheduler
+
+    with scheduler(args.scheduler):
+        return _reproduce_run(args, -1 if args.scheduler else args.jobs)
+
+
+def _reproduce_run(args, n_jobs) -> int:
     from joblib import Parallel, delayed
     from tqdm import tqdm
 
@@ -38,7 +45,7 @@ def _reproduce(args) -> int:
     tasks = (delayed(rp.run_seed)(s, seed, args.t_end, args.placement) for s, seed in jobs)
     runs = list(
         tqdm(
-            Parallel(n_jobs=args.jobs, return_as="generator")(tasks),
+            Parallel(n_jobs=n_jobs, return_as="generator")(tasks),
             total=len(jobs),
             desc="seeds",
             disable=not sys.stderr.isatty() and args.quiet,
@@ -119,13 +126,16 @@ def _bench(args) -> int:
 
 def _zoo(args) -> int:
     from . import zoo
+    from .parallel import scheduler
 
-    if args.quick:
-        rows = zoo.run(n_systems=2, seeds=1, families=("clean", "spikes"), n_samples=600,
-                       jobs=args.jobs, progress=not args.quiet)  # fmt: skip
-    else:
-        rows = zoo.run(n_systems=args.systems, seeds=args.seeds, jobs=args.jobs,
-                       progress=not args.quiet)  # fmt: skip
+    jobs = -1 if args.scheduler else args.jobs
+    with scheduler(args.scheduler):
+        if args.quick:
+            rows = zoo.run(n_systems=2, seeds=1, families=("clean", "spikes"), n_samples=600,
+                           jobs=jobs, progress=not args.quiet)  # fmt: skip
+        else:
+            rows = zoo.run(n_systems=args.systems, seeds=args.seeds, jobs=jobs,
+                           progress=not args.quiet)  # fmt: skip
     command = "robust-sindy zoo" + (" --quick" if args.quick else f" --seeds {args.seeds}")
     print(zoo.table(zoo.summary(rows)))
     paths = zoo.write(rows, Path(args.out), command)
@@ -275,6 +285,12 @@ def main(argv: list[str] | None = None) -> int:
         "default), on the derivatives, or both",
     )
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
+    rep.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run the seeds on Dask: 'local' (a LocalCluster) or a scheduler address "
+        '(needs pip install "robust-sindy[dask]"; --jobs is then ignored)',
+    )
     ben = sub.add_parser(
         "bench",
         help="time the fast path against CVXPY, OSQP, skglm and PySINDy, whole "
@@ -305,6 +321,12 @@ def main(argv: list[str] | None = None) -> int:
     )
     zoo_.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")
     zoo_.add_argument("--quiet", action="store_true", help="no progress bar")
+    zoo_.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run the seeds on Dask: 'local' (a LocalCluster) or a scheduler address "
+        '(needs pip install "robust-sindy[dask]"; --jobs is then ignored)',
+    )
     args = parser.parse_args(argv)
     if args.command == "fit":
         return _fit(args, fit)

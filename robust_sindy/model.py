@@ -30,6 +30,7 @@ from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refi
 from .selection.path import pilot_budget
 from .selection.screening import temporal_screen
 from .simulate import check_time, input_function
+from .solvers.chunked import is_dask
 
 __all__ = ["Diagnostics", "HuberSINDy", "IdentificationWarning"]
 
@@ -184,6 +185,10 @@ class Diagnostics:
         lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
         return "\n".join(lines)
 
+
+#: Samples (the first ones, contiguous) on which the automatic choices are made when the
+#: data are Dask arrays.
+DASK_SAMPLE = 200_000
 
 _DIFFERENTIATION = {
     "robust": None,  # local polynomials, temporal outliers given no weight (see fit)
@@ -454,6 +459,8 @@ class HuberSINDy(BaseEstimator):
         sample times in seconds.
         """
         self._check_params()
+        if any(is_dask(a) for a in (x, x_dot, u)):
+            return self._fit_dask(x, t, x_dot, u, feature_names)
         x, t, x_dot, u, frame_names = _from_frames(x, t, x_dot, u)
         if feature_names is None:
             feature_names = frame_names
@@ -462,6 +469,112 @@ class HuberSINDy(BaseEstimator):
             with threadpool_limits(limits=1, user_api="blas"):
                 return self._fit(xs, ts, ds, us, feature_names)
         return self._fit(xs, ts, ds, us, feature_names)
+
+    def _fit_dask(self, x, t, x_dot, u, feature_names) -> HuberSINDy:
+        """Dask arrays: choose on a sample in memory, then fit every sample out of core.
+
+        The whole pipeline (screens, delta, lam, support) runs on the first
+        ``DASK_SAMPLE`` samples; then each equation's selected terms are refitted by
+        Huber (``lam = 0``, the chosen ``delta``) on all samples, chunk by chunk
+        (:mod:`robust_sindy.solvers.chunked`), leaving out the samples whose residual
+        under the sample's model exceeds ``3.5`` times the larger of the sample's robust
+        scale and the local robust scale of the residuals within 25 samples, in any
+        equation (the model screen's rule; here the local scale counts every sample,
+        not only those the temporal screen left alone).
+        """
+        import dask.array as da
+
+        from ._scaling import robust_scale
+        from .outofcore import dask_library
+        from .selection.screening import local_scale
+
+        x = da.asarray(x)
+        if x.ndim != 2:
+            raise ValueError(f"x must be 2-D (one trajectory) with Dask; got shape {x.shape}")
+        m = x.shape[0]
+        u = None if u is None else da.asarray(u)
+        if u is not None and u.ndim == 1:
+            u = u[:, None]
+        if u is not None and u.shape[0] != m:
+            raise ValueError(f"u has {u.shape[0]} samples but x has {m}")
+        if x_dot is None:
+            raise ValueError(
+                "x_dot is required when x is a Dask array (derivatives are not computed "
+                "out of core); differentiate chunk by chunk with overlap, e.g. "
+                "x.map_overlap(f, depth=2), or pass the measured derivatives"
+            )
+        x_dot = da.asarray(x_dot)
+        x_dot = x_dot[:, None] if x_dot.ndim == 1 else x_dot
+        if x_dot.shape != x.shape:
+            raise ValueError(f"x_dot has shape {x_dot.shape} but x has shape {x.shape}")
+        k = min(m, DASK_SAMPLE)
+        t_sample = None
+        if t is not None:
+            t_arr = np.asarray(t, dtype=float) if not is_dask(t) else np.asarray(t[:k])
+            t_sample = t_arr if t_arr.ndim == 0 else t_arr[:k]
+        sample = [
+            None if a is None else np.asarray(a[:k].compute(), dtype=float) for a in (x, x_dot, u)
+        ]
+        self._fit(*self._trajectories(sample[0], t_sample, sample[1], sample[2],
+                                      need_t=False), feature_names)  # fmt: skip
+        coef_sample = self.coef_.T.copy()
+        # The sample's model and scales screen every sample, chunk by chunk.
+        _, theta = dask_library(self.library_, x, u, input_names=self.library_.input_names_)
+        theta_sample = self.library_.transform(self._inputs(sample[0], sample[2]))
+        r_sample = sample[1] - theta_sample @ coef_sample
+        kept = ~self.screened_
+        scale = np.maximum(robust_scale(r_sample[kept]), np.finfo(float).tiny)
+        r = x_dot - theta @ da.from_array(coef_sample)
+        # As the model screen: the larger of the global scale and the residuals' local
+        # robust scale within 25 samples (residuals that grow along a fast part of the
+        # trajectory are not outliers), each chunk with 25 samples of its neighbours.
+        local = da.map_overlap(
+            lambda b: local_scale(b, 25), r, depth={0: 25, 1: 0}, boundary="none",
+            dtype=float,
+        )  # fmt: skip
+        bad = (abs(r) > 3.5 * da.maximum(local, scale)).any(axis=1)
+        keep = ~bad
+        theta_k = theta * keep[:, None]
+        y_k = x_dot * keep[:, None]
+        coef = np.zeros_like(coef_sample)
+        results = []
+        for j in range(coef.shape[1]):
+            support = np.flatnonzero(coef_sample[:, j])
+            if support.size == 0:
+                results.append(None)
+                continue
+            lam = 0.0  # lam="auto" and refit: the selected terms, unpenalised
+            if self.selection_ is None and not self.refit:
+                lam_ = np.asarray(self.lam_)
+                lam = lam_[support, j] if lam_.ndim == 2 else float(np.ravel(lam_)[j])
+            res = fit(theta_k[:, support], y_k[:, j], delta=float(self.delta_[j]), lam=lam,
+                      **{key: v for key, v in (self.solver_options or {}).items()
+                         if key in ("tol", "max_iter")})  # fmt: skip
+            coef[support, j] = res.coef
+            results.append(res)
+        self.coef_sample_ = coef_sample.T
+        self.coef_ = np.ascontiguousarray(coef.T)
+        self.support_ = self.coef_ != 0
+        self.screened_ = bad  # lazy (Dask): samples left out of the out-of-core refit
+        self.outliers_ = abs(r) > self.delta_
+        (n_flagged,) = da.compute(bad.sum())
+        certified = np.array([True if r_ is None else bool(r_.converged) for r_ in results])
+        self.diagnostics_.certified = self.diagnostics_.certified & certified
+        self.dask_ = {
+            "sample": k,
+            "samples": m,
+            "flagged": int(n_flagged),
+            "passes": [0 if r_ is None else r_.info["passes"] for r_ in results],
+            "refit": results,
+        }
+        if not certified.all():
+            warnings.warn(
+                f"the out-of-core refit of equations {np.flatnonzero(~certified).tolist()} "
+                "was not certified (see dask_['refit'])",
+                IdentificationWarning,
+                stacklevel=3,
+            )
+        return self
 
     def _fit(self, xs, ts, ds, us, feature_names) -> HuberSINDy:
         n = xs[0].shape[1]

@@ -187,5 +187,5 @@ def test_a_delta_far_above_the_residuals_is_the_lasso_and_certified(rel):
     lam = 2.0
     res = rs.fit(theta, y, delta=rel * np.abs(y).max(), lam=lam)
     lasso = rs.fit(theta, y, delta=1.0, lam=lam, loss="squared")
-    assert res.converged.all() and res.kkt[0] <= 1e-8
+    assert res.converged and res.kkt[0] <= 1e-8
     np.testing.assert_allclose(res.coef, lasso.coef, rtol=1e-7, atol=1e-9)

@@ -489,15 +489,15 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
     if prepared is None or prepared.equilibrate != equilibrate or prepared.kappa != kappa:
         prepared = prepare(theta, equilibrate=equilibrate, kappa=kappa)
     nz, scale, A = prepared.nz, prepared.scale, prepared.A
-    # Exact per-column rescaling y / c, delta / c, lam / c (solution xi / c): c is the
-    # Huber threshold (the rms of y for the squared loss), or the geometric mean of the
-    # threshold and max|y| when the threshold is the smaller, so that neither y / c nor
-    # delta / c leaves the floating-point range (delta = 1e-300 max|y| is representable).
+    # Exact per-column rescaling y / c, delta / c, lam / c (solution xi / c): c is max|y|
+    # when the Huber threshold is larger (the rms of y for the squared loss), else the
+    # geometric mean of the threshold and max|y|, so that neither y / c nor delta / c
+    # leaves the floating-point range (delta from 1e-300 to 1e300 times max|y|).
     ymax = np.max(np.abs(y), axis=0) if y.shape[0] else np.zeros(n)
     with np.errstate(over="ignore", under="ignore"):
         c = np.where(
             np.isfinite(delta),
-            np.where(delta >= ymax, delta, np.sqrt(delta) * np.sqrt(ymax)),
+            np.where(delta >= ymax, ymax, np.sqrt(delta) * np.sqrt(ymax)),
             column_norms(y) / np.sqrt(max(y.shape[0], 1)),
         )
     c = np.where((c > 0) & np.isfinite(c), c, 1.0)

@@ -1,0 +1,49 @@
+"""Libraries of Dask arrays: ``Theta`` as a lazy expression of the states, chunk by chunk.
+
+:func:`dask_library` fits a library's names and returns ``Theta`` as a Dask array with
+the row chunks of the states; every pass of :func:`robust_sindy.fit` over it evaluates
+the library on one chunk at a time, so ``Theta`` is never held whole.
+
+    >>> import dask.array as da, numpy as np, robust_sindy as rs
+    >>> x = da.from_array(np.random.default_rng(0).normal(size=(1000, 2)), chunks=(250, 2))
+    >>> lib, theta = rs.outofcore.dask_library(rs.PolynomialLibrary(2), x)
+    >>> theta.shape, theta.chunks[0], lib.get_feature_names()[:3]
+    ((1000, 6), (250, 250, 250, 250), ['1', 'x0', 'x1'])
+"""
+
+from __future__ import annotations
+
+import numpy as np
+from sklearn.base import clone
+
+from .library import BaseLibrary, PolynomialLibrary
+
+__all__ = ["dask_library"]
+
+
+def dask_library(library: BaseLibrary | None, x, u=None, input_names=None):
+    """The fitted library and ``Theta(x, u)`` as a lazy Dask array (same row chunks as ``x``).
+
+    ``x`` (m, n) and ``u`` (m, q) are Dask arrays (or arrays, wrapped), chunked by rows
+    only; ``u`` is rechunked to ``x``'s rows.
+    """
+    import dask.array as da
+
+    x = da.asarray(x)
+    if x.ndim != 2:
+        raise ValueError(f"x must be 2-D; got shape {x.shape}")
+    x = x.rechunk({1: -1})
+    z = x
+    if u is not None:
+        u = da.asarray(u)
+        u = u[:, None] if u.ndim == 1 else u
+        if u.shape[0] != x.shape[0]:
+            raise ValueError(f"u has {u.shape[0]} samples but x has {x.shape[0]}")
+        z = da.concatenate([x, u.rechunk({0: x.chunks[0], 1: -1})], axis=1)
+    lib = clone(library) if library is not None else PolynomialLibrary()
+    lib.fit(np.zeros((1, z.shape[1])), input_names=input_names)
+    p = lib.n_output_features_
+    theta = z.map_blocks(
+        lambda block: lib.transform(block), chunks=(z.chunks[0], (p,)), dtype=float
+    )
+    return lib, theta

@@ -1,0 +1,45 @@
+"""Where parallel work runs: joblib's processes by default, or a Dask cluster on request.
+
+``with scheduler("local"):`` starts a :class:`dask.distributed.LocalCluster` for the
+block and routes joblib (seeds of ``robust-sindy reproduce`` and ``zoo``, the models of
+:class:`~robust_sindy.EnsembleSINDy`) through it; ``scheduler("tcp://host:8786")``
+connects to a running cluster instead; ``scheduler(None)`` changes nothing.  Needs
+``pip install "robust_sindy[dask]"``.
+"""
+
+from __future__ import annotations
+
+import contextlib
+
+__all__ = ["scheduler"]
+
+
+@contextlib.contextmanager
+def scheduler(address: str | None, n_workers: int | None = None):
+    """Run joblib work inside the block on Dask (``"local"`` or a scheduler address)."""
+    if address is None:
+        yield None
+        return
+    if not isinstance(address, str) or not address:
+        raise ValueError(f"scheduler must be 'local' or a scheduler address; got {address!r}")
+    try:
+        from dask.distributed import Client, LocalCluster
+    except ImportError:
+        raise ImportError(
+            'a Dask scheduler needs dask and distributed: pip install "robust_sindy[dask]"'
+        ) from None
+    from joblib import parallel_config
+
+    with contextlib.ExitStack() as stack:
+        if address == "local":
+            cluster = stack.enter_context(
+                LocalCluster(n_workers=n_workers, threads_per_worker=1, dashboard_address=None)
+            )
+            client = stack.enter_context(Client(cluster))
+        else:
+            try:
+                client = stack.enter_context(Client(address, timeout="10s"))
+            except OSError as exc:
+                raise ValueError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
+        stack.enter_context(parallel_config(backend="dask", n_jobs=-1))
+        yield client

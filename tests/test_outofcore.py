@@ -1,0 +1,130 @@
+"""Fits on Dask arrays: the same certified optimum as in memory, from sums over chunks."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import robust_sindy as rs
+
+da = pytest.importorskip("dask.array")
+
+
+def _problem(m=6000, seed=0):
+    system = rs.systems.Lorenz()
+    data = system.generate(t_end=m * 0.01 - 0.01)
+    rng = np.random.default_rng(seed)
+    y = data.x_dot + 0.01 * rng.normal(size=data.x_dot.shape)
+    bad = rng.uniform(size=len(y)) < 0.2
+    y[bad] += 50 * rng.normal(size=(bad.sum(), 3))
+    return data.x, y
+
+
+@pytest.mark.parametrize("lam", [0.0, 2.0])
+def test_dask_fit_of_a_lazy_library_matches_the_in_memory_fit(lam):
+    x, y = _problem()
+    lib, theta = rs.outofcore.dask_library(rs.PolynomialLibrary(2), da.from_array(x, chunks=700))
+    assert isinstance(theta, da.Array) and theta.shape == (len(x), 10)
+    res = rs.fit(theta, da.from_array(y, chunks=700), delta=0.5, lam=lam)
+    ref = rs.fit(lib.transform(x), y, delta=0.5, lam=lam)
+    assert res.converged and ref.converged and res.solver == "newton-chunked"
+    assert res.kkt.max() <= 1e-8
+    np.testing.assert_allclose(res.objective, ref.objective, rtol=1e-8)
+    np.testing.assert_allclose(res.coef, ref.coef, rtol=1e-6, atol=1e-8)
+    np.testing.assert_array_equal(res.coef != 0, ref.coef != 0)
+    assert 3 <= res.info["passes"] <= 40
+    # the m-sized outputs stay lazy
+    assert isinstance(res.inliers, da.Array)
+    np.testing.assert_array_equal(res.inliers.compute(), ref.inliers)
+
+
+def test_dask_fit_one_column_and_what_it_refuses():
+    x, y = _problem(2000, seed=1)
+    theta = rs.PolynomialLibrary(2).fit_transform(x)
+    th, yd = da.from_array(theta, chunks=300), da.from_array(y[:, 0], chunks=300)
+    res = rs.fit(th, yd, delta=0.5, lam=1.0)
+    ref = rs.fit(theta, y[:, 0], delta=0.5, lam=1.0)
+    assert res.coef.shape == (10,) and res.converged
+    np.testing.assert_allclose(res.objective, ref.objective, rtol=1e-8)
+    with pytest.raises(ValueError, match="fast path only"):
+        rs.fit(th, yd, method="cvxpy")
+    with pytest.raises(ValueError, match="delta='auto'"):
+        rs.fit(th, yd, delta="auto")
+    with pytest.raises(ValueError, match="unknown option"):
+        rs.fit(th, yd, rho=1.0)
+    with pytest.warns(rs.ConvergenceWarning, match="did not certify"):
+        out = rs.fit(th, yd, delta=0.5, lam=1.0, max_iter=1)
+    assert not out.converged
+
+
+def test_dask_fit_on_a_distributed_cluster():
+    distributed = pytest.importorskip("distributed")
+    x, y = _problem(1500, seed=2)
+    theta = rs.PolynomialLibrary(2).fit_transform(x)
+    ref = rs.fit(theta, y, delta=0.5, lam=1.0)
+    with distributed.LocalCluster(n_workers=1, threads_per_worker=1, processes=False,
+                                  dashboard_address=None) as cluster:  # fmt: skip
+        with distributed.Client(cluster):
+            res = rs.fit(da.from_array(theta, chunks=400), da.from_array(y, chunks=400),
+                         delta=0.5, lam=1.0)  # fmt: skip
+    assert res.converged
+    np.testing.assert_allclose(res.objective, ref.objective, rtol=1e-8)
+
+
+def test_no_warning_on_a_clean_run():
+    x, y = _problem(1000, seed=3)
+    theta = rs.PolynomialLibrary(2).fit_transform(x)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        rs.fit(da.from_array(theta, chunks=250), da.from_array(y, chunks=250), delta=0.5, lam=1.0)
+
+
+def test_a_start_without_inliers_takes_majoriser_steps():
+    """Gross errors of one sign shift the least-squares start so far that no residual is
+    within delta: the inlier Gram matrix is zero, and the Huber majoriser steps in."""
+    rng = np.random.default_rng(0)
+    data = rs.systems.Lorenz().generate(t_end=50.0)
+    x = data.x + 0.01 * rng.normal(size=data.x.shape)
+    y = data.x_dot.copy()
+    y[rng.uniform(size=len(y)) < 0.1] += 50.0
+    theta = rs.PolynomialLibrary(2).fit_transform(x)
+    start = np.linalg.lstsq(theta, y, rcond=None)[0]
+    assert np.all(np.abs(y - theta @ start) > 0.5)  # no inliers at the start
+    res = rs.fit(da.from_array(theta, chunks=1000), da.from_array(y, chunks=1000), delta=0.5,
+                 lam=1.0)  # fmt: skip
+    ref = rs.fit(theta, y, delta=0.5, lam=1.0)
+    assert res.converged and ref.converged
+    np.testing.assert_allclose(res.objective, ref.objective, rtol=1e-8)
+
+
+def test_huber_sindy_on_dask_arrays_chooses_on_a_sample_and_fits_everything(monkeypatch):
+    from robust_sindy import model as model_module
+    from robust_sindy.noise import contaminate
+
+    monkeypatch.setattr(model_module, "DASK_SAMPLE", 1000)
+    system = rs.systems.Lorenz()
+    data = system.generate(t_end=30.0)  # 3001 samples
+    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(0))
+    x = da.from_array(noisy.x, chunks=500)
+    d = da.from_array(noisy.x_dot, chunks=500)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        model = rs.HuberSINDy().fit(x, data.t, x_dot=d)
+    truth = system.true_coef().T
+    np.testing.assert_array_equal(model.support_, truth != 0)
+    # delta and lam chosen on the sample select what the whole data in memory selects
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        whole = rs.HuberSINDy().fit(noisy.x, data.t, x_dot=noisy.x_dot)
+    np.testing.assert_array_equal(model.support_, whole.support_)
+    np.testing.assert_allclose(model.delta_, whole.delta_, rtol=0.2)
+    np.testing.assert_allclose(model.coef_[truth != 0], truth[truth != 0], rtol=2e-3)
+    assert model.dask_["sample"] == 1000 and model.dask_["samples"] == len(data.t)
+    assert all(r.converged for r in model.dask_["refit"]) and model.diagnostics_.certified.all()
+    flagged = model.screened_.compute()
+    assert flagged.shape == (len(data.t),)
+    # the samples left out are the contaminated ones (20 %), hardly any clean one
+    assert (flagged & noisy.outliers).sum() >= 0.95 * noisy.outliers.sum()
+    assert (flagged & ~noisy.outliers).sum() <= 0.02 * (~noisy.outliers).sum()
+    with pytest.raises(ValueError, match="x_dot is required"):
+        rs.HuberSINDy().fit(x, data.t)
