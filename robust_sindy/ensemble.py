@@ -34,6 +34,10 @@ __all__ = ["UNCERTAIN_BAND", "DroppedTerms", "EnsembleSINDy"]
 #: Inclusion probabilities within this distance of ``inclusion_threshold`` are reported
 #: as uncertain (a warning names the terms).
 UNCERTAIN_BAND = 0.25
+#: Shortest default block: each block is screened and differentiated as a trajectory of
+#: its own, and the temporal screen's noise scales need about this many samples (with 32
+#: the drone's 20 % contaminated rows inflated them and true terms were lost).
+MIN_BLOCK = 100
 #: Fraction of the samples ``sampling="rows"`` draws (with replacement) per model.
 ROW_FRACTION = 1.0
 
@@ -124,7 +128,8 @@ class EnsembleSINDy(BaseEstimator):
         (about 63 % of them), derivatives computed once on the full trajectories by the
         estimator's ``differentiation`` when ``x_dot`` is not given.
     block_length : int, optional
-        Default: ``max(25, round(sqrt(m)))`` for a trajectory of ``m`` samples.
+        Default: ``max(MIN_BLOCK, round(sqrt(m)))`` (``MIN_BLOCK = 100``) for a
+        trajectory of ``m`` samples.
     library_ensemble : bool
         Also drop ``n_drop`` random candidate terms in each model.
     n_drop : int
@@ -153,7 +158,9 @@ class EnsembleSINDy(BaseEstimator):
     available_ : ndarray of bool (n_fitted, n_features)
         The terms each model could use (all, without ``library_ensemble``).
     uncertain_ : ndarray of bool (n_targets, n_features)
-        Terms whose inclusion probability is within ``UNCERTAIN_BAND`` of the threshold.
+        Terms whose inclusion probability is within ``UNCERTAIN_BAND`` of the threshold
+        (named in an ``IdentificationWarning``; so is the most frequent warning of the
+        models when more than half of them warned).
     warned_fraction_ : float
         Fraction of the models whose fit raised a warning; ``member_warnings_`` counts
         the messages.
@@ -276,7 +283,7 @@ class EnsembleSINDy(BaseEstimator):
         for k, a in enumerate(xs):
             m = a.shape[0]
             if self.sampling == "blocks":
-                block = self.block_length or max(25, round(math.sqrt(m)))
+                block = self.block_length or max(MIN_BLOCK, round(math.sqrt(m)))
                 pieces += [(k, sl) for sl in _blocks(rng, m, block)]
             else:
                 rows = np.unique(rng.integers(0, m, size=max(1, round(ROW_FRACTION * m))))
@@ -325,6 +332,14 @@ class EnsembleSINDy(BaseEstimator):
                 f"the threshold {self.inclusion_threshold}): "
                 + "; ".join(parts)
                 + ". The data do not settle whether they belong in the model.",
+                IdentificationWarning,
+                stacklevel=3,
+            )
+        if self.warned_fraction_ > 0.5:
+            common = max(self.member_warnings_, key=self.member_warnings_.get)
+            warnings.warn(
+                f"{100 * self.warned_fraction_:.0f} % of the resampled fits warned (see "
+                f"member_warnings_); the most frequent: {common}",
                 IdentificationWarning,
                 stacklevel=3,
             )

@@ -67,6 +67,12 @@ def test_uncertain_terms_are_named_in_a_warning(lorenz):
     assert ens.inclusion_probability_[0, 6] == 0.5 and ens.uncertain_[0, 6]
     with pytest.warns(rs.IdentificationWarning, match=r"\(x0\)': x0\*x2 \(0\.50\)"):
         ens._warn()
+    # most models warned: the ensemble says so, with the most frequent message
+    ens.warned_fraction_, ens.member_warnings_ = 0.75, {"library noise": 3, "other": 1}
+    with pytest.warns(
+        rs.IdentificationWarning, match="75 % of the resampled fits warned.*library noise"
+    ):
+        ens._warn()
 
 
 def test_simulate_gives_ordered_quantile_bands_and_figures(lorenz):
