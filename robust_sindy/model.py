@@ -189,6 +189,8 @@ class Diagnostics:
 #: Samples (the first ones, contiguous) on which the automatic choices are made when the
 #: data are Dask arrays.
 DASK_SAMPLE = 200_000
+#: Samples each chunk borrows from its neighbours to differentiate Dask states.
+DASK_OVERLAP = 64
 
 _DIFFERENTIATION = {
     "robust": None,  # local polynomials, temporal outliers given no weight (see fit)
@@ -473,10 +475,13 @@ class HuberSINDy(BaseEstimator):
     def _fit_dask(self, x, t, x_dot, u, feature_names) -> HuberSINDy:
         """Dask arrays: choose on a sample in memory, then fit every sample out of core.
 
-        The whole pipeline (screens, delta, lam, support) runs on the first
-        ``DASK_SAMPLE`` samples; then each equation's selected terms are refitted by
-        Huber (``lam = 0``, the chosen ``delta``) on all samples, chunk by chunk
-        (:mod:`robust_sindy.solvers.chunked`), leaving out the samples whose residual
+        Without ``x_dot`` (``t`` must then be the time step) the states are
+        differentiated chunk by chunk by ``differentiation``, each chunk with
+        ``DASK_OVERLAP`` samples of its neighbours.  The whole pipeline (screens,
+        delta, lam, support) runs on the first ``DASK_SAMPLE`` samples; then each
+        equation's selected terms are refitted by Huber (``lam = 0``, the chosen
+        ``delta``) on all samples, chunk by chunk (:mod:`robust_sindy.solvers.chunked`),
+        leaving out the samples whose residual
         under the sample's model exceeds ``3.5`` times the larger of the sample's robust
         scale and the local robust scale of the residuals within 25 samples, in any
         equation (the model screen's rule; here the local scale counts every sample,
@@ -498,10 +503,24 @@ class HuberSINDy(BaseEstimator):
         if u is not None and u.shape[0] != m:
             raise ValueError(f"u has {u.shape[0]} samples but x has {m}")
         if x_dot is None:
-            raise ValueError(
-                "x_dot is required when x is a Dask array (derivatives are not computed "
-                "out of core); differentiate chunk by chunk with overlap, e.g. "
-                "x.map_overlap(f, depth=2), or pass the measured derivatives"
+            if t is None or is_dask(t) or np.ndim(t) != 0:
+                raise ValueError(
+                    "with a Dask x, derivatives are computed out of core for a uniform time "
+                    "step only: pass t as a number (the step), or pass x_dot"
+                )
+            dt = float(t)
+            if not (np.isfinite(dt) and dt > 0):
+                raise ValueError(f"t as a time step must be a finite number > 0; got {t!r}")
+            _check_differentiation(self.differentiation)
+
+            def derivative(block):
+                return self._differentiate(block, dt * np.arange(block.shape[0]))
+
+            # Each chunk with DASK_OVERLAP samples of its neighbours on either side: the
+            # temporal screen's and the stencils' windows lie well within them.
+            x = x.rechunk({1: -1})
+            x_dot = x.map_overlap(
+                derivative, depth={0: DASK_OVERLAP, 1: 0}, boundary="none", dtype=float
             )
         x_dot = da.asarray(x_dot)
         x_dot = x_dot[:, None] if x_dot.ndim == 1 else x_dot

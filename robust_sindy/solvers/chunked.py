@@ -1,12 +1,13 @@
 """The Huber-Lasso on data larger than memory: a proximal Newton method over Dask row chunks.
 
-Everything a step needs is a sum over rows, computed chunk by chunk as a Dask graph
-(``to_delayed`` blocks, partial sums, one tree reduction), so ``Theta`` is never
-materialised: a library given as a lazy Dask expression of the states is evaluated
-chunk by chunk in every pass.  For each target column ``k`` at the current ``xi``:
+Everything a step needs is a sum over rows, computed chunk by chunk as a Dask array
+reduction (each chunk's sums packed into one row by ``map_blocks``, the rows added by
+``sum``), so ``Theta`` is never materialised: a library given as a lazy Dask
+expression of the states is evaluated chunk by chunk in every pass.  For each target
+column ``k`` at the current ``xi``:
 
 * one pass gives the Huber objective, the gradient ``g = -Theta^T psi(r)``, the inlier
-  Gram matrix ``H = Theta_I^T Theta_I`` (samples with ``|r| <= delta``), the Huber
+  Gram matrix ``H = Theta_I^T Theta_I`` (samples with ``|r| <= delta``)
   and the sums the certificate needs (column norms, ``||psi||``, ``y^T psi``); where
   the inliers do not fix every term (e.g. none at the least-squares start), one more
   pass gives the Huber majoriser's ``Theta^T W Theta`` (``W = min(1, delta / |r|)``),
@@ -61,7 +62,7 @@ class ChunkedRun:
 
 
 def _blocks(theta, y):
-    """Row blocks of ``theta`` and ``y`` as lists of delayed arrays (aligned chunks)."""
+    """``theta`` and ``y`` with one column chunk each and the same row chunks."""
     if theta.ndim != 2 or y.ndim != 2:
         raise ValueError("theta must be 2-D and xdot 1-D or 2-D")
     if len(theta.chunks[1]) != 1:
@@ -70,7 +71,7 @@ def _blocks(theta, y):
         y = y.rechunk({1: -1})
     if theta.chunks[0] != y.chunks[0]:
         y = y.rechunk({0: theta.chunks[0]})
-    return list(theta.to_delayed()[:, 0]), list(y.to_delayed()[:, 0])
+    return theta, y
 
 
 # ---------------------------------------------------------------- per-chunk statistics
@@ -135,14 +136,48 @@ def _add(parts):
     return out
 
 
-def _reduce(func, tb, yb, *args):
-    """One pass: ``func`` on every chunk, summed by Dask (a tree reduction)."""
+def _flatten(stats: dict, prefix=()) -> list:
+    """``[(key path, array), ...]`` of a (nested) dict of arrays, in a fixed order."""
+    out = []
+    for key in sorted(stats):
+        value = stats[key]
+        if isinstance(value, dict):
+            out += _flatten(value, (*prefix, key))
+        else:
+            out.append(((*prefix, key), np.asarray(value, dtype=float)))
+    return out
+
+
+def _reduce(func, theta, y, *args):
+    """One pass: ``func``'s sums on every row chunk, added by a Dask array reduction.
+
+    Each chunk's statistics are packed into one row vector (``map_blocks``) and the rows
+    summed (``sum(axis=0)``, Dask's tree reduction), so no chunk outlives its task.
+    """
     import dask
 
-    parts = [dask.delayed(func)(t, y, *args) for t, y in zip(tb, yb, strict=True)]
-    while len(parts) > 1:  # pairwise sums: no single task holds every partial result
-        parts = [dask.delayed(_add)(parts[i : i + 8]) for i in range(0, len(parts), 8)]
-    return dask.compute(parts[0])[0]
+    p, n = theta.shape[1], y.shape[1]
+    layout = [
+        (key, a.shape) for key, a in _flatten(func(np.zeros((1, p)), np.zeros((1, n)), *args))
+    ]
+    width = sum(int(np.prod(shape)) for _, shape in layout)
+
+    def packed(th, yb):
+        parts = _flatten(func(th, yb, *args))
+        return np.concatenate([a.ravel() for _, a in parts])[None, :]
+
+    rows = theta.map_blocks(packed, y, chunks=((1,) * theta.numblocks[0], (width,)), dtype=float)
+    (total,) = dask.compute(rows.sum(axis=0))
+    out: dict = {}
+    offset = 0
+    for key, shape in layout:
+        size = int(np.prod(shape))
+        node = out
+        for part in key[:-1]:
+            node = node.setdefault(part, {})
+        node[key[-1]] = total[offset : offset + size].reshape(shape)
+        offset += size
+    return out
 
 
 # ---------------------------------------------------------------- the in-memory step
@@ -205,9 +240,9 @@ def solve_chunked(
             warnings.simplefilter("ignore")
             return fit_in_memory(design, target, loss=loss, lam=lam)
 
-    tb, yb = _blocks(theta, y)
+    theta, y = _blocks(theta, y)
     p, n = theta.shape[1], y.shape[1]
-    start = _reduce(_first, tb, yb)
+    start = _reduce(_first, theta, y)
     passes = 1
     col_sq = start["col_sq"]
     col = np.sqrt(np.where(col_sq > 0, col_sq, 1.0))
@@ -215,7 +250,7 @@ def solve_chunked(
     xi = np.zeros((p, n))
     for k in range(n):  # least-squares (Lasso) start, from the Gram matrix
         xi[:, k] = _lasso_step(start["G"], -start["b"][:, k], np.zeros(p), lam[:, k], col, inner)
-    stats = _reduce(_stats, tb, yb, xi, delta, True)
+    stats = _reduce(_stats, theta, y, xi, delta, True)
     passes += 1
     iterations = np.zeros(n, dtype=int)
     done = np.zeros(n, dtype=bool)
@@ -228,14 +263,14 @@ def solve_chunked(
         d = np.zeros((p, n))
         deficient = [k for k in np.flatnonzero(~done) if _deficient(stats["H"][k], col)]
         if deficient:  # too few inliers to fix every term: the majoriser's (IRLS) step
-            stats["M"] = _reduce(_stats, tb, yb, xi, delta, False, True)["M"]
+            stats["M"] = _reduce(_stats, theta, y, xi, delta, False, True)["M"]
             passes += 1
         for k in np.flatnonzero(~done):
             H = stats["M"][k] if k in deficient else stats["H"][k]
             z = _lasso_step(H, -stats["g"][:, k], xi[:, k], lam[:, k], col, inner)
             d[:, k] = z - xi[:, k]
             iterations[k] += 1
-        trial = _reduce(_trial, tb, yb, xi, d, delta, True)
+        trial = _reduce(_trial, theta, y, xi, d, delta, True)
         passes += 1
         f0 = stats["obj"] + (lam * np.abs(xi)).sum(axis=0)
         pen = np.stack([(lam * np.abs(xi + s * d)).sum(axis=0) for s in STEPS])
@@ -262,7 +297,7 @@ def solve_chunked(
             stats = trial["next"]
         else:
             xi = xi + step[None, :] * d
-            stats = _reduce(_stats, tb, yb, xi, delta, True)
+            stats = _reduce(_stats, theta, y, xi, delta, True)
             passes += 1
             if np.all(step[~done] == 0.0):
                 break  # no decrease along the Newton directions: stalled
