@@ -130,3 +130,19 @@ def test_ensemble_on_a_local_dask_cluster_matches_joblib(lorenz):
     with pytest.raises(ValueError, match="scheduler must be"):
         with scheduler(""):
             pass
+
+
+def test_block_sampling_never_splits_a_block(lorenz):
+    _, data, noisy = lorenz
+    ens = rs.EnsembleSINDy(block_length=40)
+    rng = np.random.default_rng(0)
+    xs, ts = [noisy.x[:250], noisy.x[250:]], [data.t[:250], data.t[250:]]
+    out_x, out_t, _, _, _ = ens._resample(rng, xs, ts, None, None, None)
+    assert len(out_x) == int(np.ceil(250 / 40)) + int(np.ceil((len(data.t) - 250) / 40))
+    for block_x, block_t in zip(out_x, out_t, strict=True):
+        assert len(block_x) == 40
+        # one contiguous run of one trajectory: consecutive times, the states at them
+        np.testing.assert_allclose(np.diff(block_t), 0.01, rtol=1e-9)
+        start = round((block_t[0] - data.t[0]) / 0.01)
+        np.testing.assert_array_equal(block_x, noisy.x[start : start + 40])
+        assert (start + 40 <= 250) or (start >= 250)  # never across two trajectories

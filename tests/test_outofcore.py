@@ -152,3 +152,15 @@ def test_huber_sindy_differentiates_dask_states_chunk_by_chunk(monkeypatch):
     ).compute()  # fmt: skip
     close = np.isclose(lazy, whole, rtol=1e-6, atol=1e-6).all(axis=1)
     assert close.mean() > 0.98
+
+
+def test_uneven_and_mismatched_chunks_give_the_same_fit():
+    x, y = _problem(2500, seed=4)
+    theta = rs.PolynomialLibrary(2).fit_transform(x)
+    ref = rs.fit(theta, y, delta=0.5, lam=1.0)
+    th = da.from_array(theta, chunks=((100, 900, 1, 1499), (4, 6)))  # uneven, split columns
+    yd = da.from_array(y, chunks=((1250, 1250), (1, 2)))  # other row chunks than theta's
+    res = rs.fit(th, yd, delta=0.5, lam=1.0)
+    assert res.converged
+    np.testing.assert_allclose(res.objective, ref.objective, rtol=1e-8)
+    np.testing.assert_allclose(res.coef, ref.coef, rtol=1e-6, atol=1e-8)

@@ -16,7 +16,7 @@ results are counted, not failures: saying "not certified" is allowed, lying is n
     python validation/fuzz.py [N]          # N problems (default 10000), ~2 ms each + Clarabel
 
 Then the same for OLS and STLS (their own certificates, numpy's least squares as the
-reference), N problems each.
+reference), N problems each, and N / 5 problems at each extreme of delta.
 
 Writes ``validation/results/fuzz.md``.
 """
@@ -92,6 +92,71 @@ def check(prob: dict) -> dict:
         "kind": prob["kind"],
         "fast_certified": fast.converged,
         "ref_certified": ref.converged,
+        "excess": excess,
+        "lie": bool(fast.converged and excess > 1.0),
+    }
+
+
+def make_extreme(rng: np.random.Generator, side: str) -> dict:
+    """A problem of :func:`make_problem` with delta from 1e7 to 1e300 (``side="huge"``) or
+    from 1e-300 to 1e-7 (``"tiny"``) times max|y|; the library alone is scaled (from 1e-150
+    to 1e150, less where lam times the scale would leave the normal range) so that delta
+    and lam stay representable."""
+    prob = make_problem(rng)
+    y_scale = float(np.abs(prob["y"]).max())
+    exp = rng.uniform(7, 300) if side == "huge" else rng.uniform(-300, -7)
+    prob["delta"] = y_scale * 10.0**exp
+    lmax = (
+        float(lambda_max(prob["theta"], prob["y"], prob["delta"])) if np.any(prob["theta"]) else 1.0
+    )
+    prob["lam"] = 0.0 if rng.uniform() < 0.2 else lmax * 10.0 ** rng.uniform(-5, 0.3)
+    prob["s_y"] = 1.0
+    if prob["lam"] > 0:  # lam s_theta must stay a normal number (no underflow to 0)
+        e = np.log10(prob["lam"])
+        prob["s_theta"] = 10.0 ** rng.uniform(max(-150, -290 - e), min(150, 290 - e))
+    prob["kind"] = f"{side} delta: {prob['kind']}"
+    return prob
+
+
+def check_extreme(prob: dict) -> dict:
+    """The fast path at an extreme delta against an independent bound.
+
+    Huge delta: the Huber loss is ``r^2 / 2`` wherever ``|r| <= delta``, so the reference
+    is CVXPY + Clarabel's Lasso (its objective evaluated as Huber).  Tiny delta: the
+    Huber objective of the least-absolute-deviation solution (``min delta ||r||_1 + lam
+    ||xi||_1`` by Clarabel) bounds the optimum from above.  Zero is a candidate too
+    (when Clarabel fails).  A failure is a certified result above the lowest candidate's
+    Huber objective by more than the allowance.
+    """
+    import cvxpy as cp
+
+    th, y, d, lam = prob["theta"], prob["y"], prob["delta"], prob["lam"]
+    st = prob["s_theta"]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        fast = rs.fit(th * st, y, delta=d, lam=lam * st)
+        # Candidate points; the optimum is at most the lowest of their objectives.
+        points = [np.zeros(th.shape[1])]
+        if prob["kind"].startswith("huge"):
+            points.append(rs.fit(th, y, method="cvxpy", loss="squared", lam=lam).coef)
+        else:
+            x = cp.Variable(th.shape[1])
+            try:
+                cp.Problem(cp.Minimize(cp.norm1(y - th @ x) + (lam / d) * cp.norm1(x))).solve(
+                    solver="CLARABEL"
+                )
+            except cp.error.SolverError:
+                pass  # no LAD point: zero remains the bound
+            if x.value is not None:
+                points.append(np.asarray(x.value))
+    obj_fast = float(rs.objective(th, y, fast.coef * st, delta=d, lam=lam)[0])
+    obj_ref = min(float(rs.objective(th, y, c, delta=d, lam=lam)[0]) for c in points)
+    obj_zero = float(rs.objective(th, y, np.zeros(th.shape[1]), delta=d, lam=lam)[0])
+    allowance = RTOL * abs(obj_ref) + 1e-12 * obj_zero
+    excess = (obj_fast - obj_ref) / max(allowance, 1e-300)
+    return {
+        "kind": prob["kind"],
+        "fast_certified": bool(fast.converged),
         "excess": excess,
         "lie": bool(fast.converged and excess > 1.0),
     }
@@ -186,6 +251,35 @@ def main(n: int = 10_000, seed: int = 0) -> list[dict]:
             f"| {sum(r['lie'] for r in sel)} |"
         )
     lies += [r for r in ls_rows if r["lie"]]
+    n_ext = max(1, n // 5)
+    ext_rows = [
+        check_extreme(make_extreme(rng, side))
+        for side in ("huge", "tiny")
+        for _ in tqdm(range(n_ext), desc=f"fuzz {side} delta", disable=not sys.stderr.isatty())
+    ]
+    lines += [
+        "",
+        "## Extreme delta",
+        "",
+        f"{n_ext} problems per side from the same generator, delta from 1e7 to 1e300 times "
+        "max|y| (huge) or from 1e-300 to 1e-7 (tiny), the library scaled from 1e-150 to "
+        "1e150. References: huge, CVXPY + Clarabel's Lasso (the Huber loss is r^2 / 2 "
+        "within delta); tiny, the Huber objective of Clarabel's least-absolute-deviation "
+        "solution (an upper bound of the optimum). A failure: certified and above the "
+        "reference's Huber objective by more than the allowance.",
+        "",
+        "| delta | problems | fast path certified | certified and failing | largest excess "
+        "when certified (allowances) |",
+        "|---|---|---|---|---|",
+    ]
+    for side in ("huge", "tiny"):
+        sel = [r for r in ext_rows if r["kind"].startswith(side)]
+        cert = [r for r in sel if r["fast_certified"]]
+        worst = max((r["excess"] for r in cert), default=float("nan"))
+        lines.append(
+            f"| {side} | {len(sel)} | {len(cert)} | {sum(r['lie'] for r in sel)} | {worst:.1e} |"
+        )
+    lies += [r for r in ext_rows if r["lie"]]
     out = Path(__file__).parent / "results" / "fuzz.md"
     out.write_text("\n".join(lines) + "\n")
     print("\n".join(lines))
