@@ -164,3 +164,16 @@ def test_uneven_and_mismatched_chunks_give_the_same_fit():
     assert res.converged
     np.testing.assert_allclose(res.objective, ref.objective, rtol=1e-8)
     np.testing.assert_allclose(res.coef, ref.coef, rtol=1e-6, atol=1e-8)
+
+
+def test_from_npy_reads_each_chunk_in_its_task(tmp_path):
+    a = np.random.default_rng(0).normal(size=(1050, 3))
+    np.save(tmp_path / "a.npy", a)
+    lazy = rs.outofcore.from_npy(tmp_path / "a.npy", chunk_rows=200)
+    assert lazy.chunks == ((200, 200, 200, 200, 200, 50), (3,))
+    np.testing.assert_array_equal(lazy.compute(), a)
+    np.save(tmp_path / "b.npy", a[:, 0])
+    with pytest.raises(ValueError, match="expected 2-D"):
+        rs.outofcore.from_npy(tmp_path / "b.npy")
+    with pytest.raises(ValueError, match="chunk_rows"):
+        rs.outofcore.from_npy(tmp_path / "a.npy", chunk_rows=0)
