@@ -461,7 +461,10 @@ class HuberSINDy(BaseEstimator):
         sample times in seconds.
         """
         self._check_params()
-        if any(is_dask(a) for a in (x, x_dot, u)):
+        if any(
+            is_dask(a) or (isinstance(a, (list, tuple)) and any(is_dask(b) for b in a))
+            for a in (x, x_dot, u)
+        ):
             return self._fit_dask(x, t, x_dot, u, feature_names)
         x, t, x_dot, u, frame_names = _from_frames(x, t, x_dot, u)
         if feature_names is None:
@@ -481,11 +484,11 @@ class HuberSINDy(BaseEstimator):
         delta, lam, support) runs on the first ``DASK_SAMPLE`` samples; then each
         equation's selected terms are refitted by Huber (``lam = 0``, the chosen
         ``delta``) on all samples, chunk by chunk (:mod:`robust_sindy.solvers.chunked`),
-        leaving out the samples whose residual
-        under the sample's model exceeds ``3.5`` times the larger of the sample's robust
-        scale and the local robust scale of the residuals within 25 samples, in any
-        equation (the model screen's rule; here the local scale counts every sample,
-        not only those the temporal screen left alone).
+        leaving out the samples whose residual under the sample's model exceeds ``3.5``
+        times the larger of the sample's robust scale and the local robust scale of the
+        residuals within 25 samples, in any equation (the model screen's rule; here the
+        local scale counts every sample, not only those the temporal screen left alone).
+        One trajectory: a list of Dask arrays is refused.
         """
         import dask.array as da
 
@@ -493,6 +496,11 @@ class HuberSINDy(BaseEstimator):
         from .outofcore import dask_library
         from .selection.screening import local_scale
 
+        if isinstance(x, (list, tuple)):
+            raise ValueError(
+                "with Dask arrays, x must be one trajectory (a 2-D Dask array), not a list; "
+                "fit trajectories of this size one at a time, or concatenate them"
+            )
         x = da.asarray(x)
         if x.ndim != 2:
             raise ValueError(f"x must be 2-D (one trajectory) with Dask; got shape {x.shape}")

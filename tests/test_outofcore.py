@@ -128,6 +128,8 @@ def test_huber_sindy_on_dask_arrays_chooses_on_a_sample_and_fits_everything(monk
     assert (flagged & ~noisy.outliers).sum() <= 0.02 * (~noisy.outliers).sum()
     with pytest.raises(ValueError, match="uniform time step only"):
         rs.HuberSINDy().fit(x, data.t)  # sample times, not a step: no derivatives
+    with pytest.raises(ValueError, match="one trajectory"):
+        rs.HuberSINDy().fit([x, x], 0.01)  # refused, never materialised
 
 
 def test_huber_sindy_differentiates_dask_states_chunk_by_chunk(monkeypatch):
