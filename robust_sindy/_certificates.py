@@ -110,6 +110,20 @@ def kkt_from_gradient(
     return rel.max(axis=0)
 
 
+def gap_from_sums(obj, grad, lam, y_psi, psi_norm) -> np.ndarray:
+    """Duality gap per column from the objective and sums over rows.
+
+    The dual-feasible point is ``psi`` scaled by ``min(1, min_j lam_j / |grad_j|)``; the
+    dual objective is quadratic in the scale: ``s y^T psi - s^2 ||psi||^2 / 2``.
+    """
+    absg = np.abs(grad)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = np.where(absg > 0, lam / absg, np.inf)
+    s = np.minimum(1.0, ratio.min(axis=0))
+    dual = s * y_psi - 0.5 * s**2 * psi_norm**2
+    return np.maximum(obj - dual, 0.0)
+
+
 _ROW_CHUNK = 4096  # rows of |Theta| formed at a time
 
 
@@ -180,13 +194,7 @@ def certify(
     obj = huber(r, delta).sum(axis=0) + (lam * np.abs(xi)).sum(axis=0)
     psi_norm = column_norms(psi)
     kkt = kkt_from_gradient(xi, g, lam, col_norms, psi_norm)
-    # Dual-feasible point by scaling psi; the dual objective is quadratic in the scale.
-    absg = np.abs(g)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = np.where(absg > 0, lam / absg, np.inf)
-    s = np.minimum(1.0, ratio.min(axis=0))
-    dual = s * np.einsum("ij,ij->j", y, psi) - 0.5 * s**2 * psi_norm**2
-    gap = np.maximum(obj - dual, 0.0)
+    gap = gap_from_sums(obj, g, lam, np.einsum("ij,ij->j", y, psi), psi_norm)
     return Certificate(objective=obj, kkt=kkt, gap=gap, residual=r, psi=psi, grad=g)
 
 

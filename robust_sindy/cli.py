@@ -209,6 +209,15 @@ def _folder(text: str) -> str:
     return text
 
 
+def _add_scheduler(parser) -> None:
+    parser.add_argument(
+        "--scheduler",
+        metavar="ADDRESS",
+        help="run the seeds on Dask: 'local' (a LocalCluster) or a scheduler address "
+        '(needs pip install "robust-sindy[dask]"; --jobs is then ignored)',
+    )
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="robust-sindy",
@@ -285,12 +294,7 @@ def main(argv: list[str] | None = None) -> int:
         "default), on the derivatives, or both",
     )
     rep.add_argument("--quiet", action="store_true", help="no progress bar")
-    rep.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="run the seeds on Dask: 'local' (a LocalCluster) or a scheduler address "
-        '(needs pip install "robust-sindy[dask]"; --jobs is then ignored)',
-    )
+    _add_scheduler(rep)
     ben = sub.add_parser(
         "bench",
         help="time the fast path against CVXPY, OSQP, skglm and PySINDy, whole "
@@ -321,12 +325,7 @@ def main(argv: list[str] | None = None) -> int:
     )
     zoo_.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")
     zoo_.add_argument("--quiet", action="store_true", help="no progress bar")
-    zoo_.add_argument(
-        "--scheduler",
-        metavar="ADDRESS",
-        help="run the seeds on Dask: 'local' (a LocalCluster) or a scheduler address "
-        '(needs pip install "robust-sindy[dask]"; --jobs is then ignored)',
-    )
+    _add_scheduler(zoo_)
     args = parser.parse_args(argv)
     if args.command == "fit":
         return _fit(args, fit)

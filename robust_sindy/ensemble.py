@@ -19,15 +19,20 @@ import math
 import warnings
 
 import numpy as np
-import scipy.integrate
 from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import NotFittedError
 
-from ._validation import as_float_array, check_int
+from ._validation import check_int
 from .export import ExportedRHS
 from .library import BaseLibrary, PolynomialLibrary
-from .model import HuberSINDy, IdentificationWarning, _from_frames
-from .simulate import check_time, input_function
+from .model import (
+    HuberSINDy,
+    IdentificationWarning,
+    _from_frames,
+    input_names,
+    integrate,
+    simulation_inputs,
+)
 
 __all__ = ["UNCERTAIN_BAND", "DroppedTerms", "EnsembleSINDy"]
 
@@ -106,7 +111,7 @@ def _fit_member(estimator, data, drop, p_full, template):
     coef = np.zeros((estimator.coef_.shape[0], p_full))
     keep = estimator.library_.keep_ if drop is not None else np.arange(p_full)
     coef[:, keep] = estimator.coef_
-    messages = [str(w.message) for w in caught if issubclass(w.category, Warning)]
+    messages = [str(w.message) for w in caught]
     certified = bool(np.all(estimator.diagnostics_.certified))
     return coef, messages, certified
 
@@ -230,14 +235,7 @@ class EnsembleSINDy(BaseEstimator):
             ds = [base._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
         # The full library: the coordinates of every model's coefficients.
         n, q = xs[0].shape[1], 0 if us is None else us[0].shape[1]
-        if names is None:
-            names = [f"x{i}" for i in range(n)] + [f"u{i}" for i in range(q)]
-        names = [str(v) for v in names]
-        if len(names) != n + q:
-            raise ValueError(
-                f"feature_names has {len(names)} names but there are {n} states and {q} "
-                "controls: give one name per state, then per control"
-            )
+        names = input_names(names, n, q)
         template = base.library if base.library is not None else PolynomialLibrary()
         self.library_ = clone(template).fit(np.zeros((1, n + q)), input_names=names)
         self.feature_names_ = names
@@ -391,31 +389,17 @@ class EnsembleSINDy(BaseEstimator):
         counts them).  ``quantiles`` default to ``self.quantiles``.
         """
         self._check_fitted("simulate")
-        t = check_time(t, "t")
-        x0 = as_float_array(x0, "x0", (1,))
         n = self.coef_.shape[0]
-        if x0.size != n:
-            raise ValueError(f"x0 has {x0.size} values; the model has {n} states")
+        t, x0, uf = simulation_inputs(x0, t, u, n, self.n_control_features_)
         q = np.asarray(self.quantiles if quantiles is None else quantiles, dtype=float)
-        uf = input_function(u, t)
-        if (uf is None) != (self.n_control_features_ == 0):
-            raise ValueError(
-                "u is required: the model has controls"
-                if self.n_control_features_
-                else "u given, but the model has no controls"
-            )
         kws = {"method": "LSODA", "rtol": 1e-8, "atol": 1e-8, **integrator_kws}
         trajectories = np.full((len(self.coef_stack_), t.size, n), np.nan)
         stopped = 0
         for i, coef in enumerate(self.coef_stack_):
             f = ExportedRHS(self.library_, coef, self.feature_names_[:n], self.n_control_features_)
-
-            def rhs(s, state, f=f):
-                return f(s, state[None, :], None if uf is None else uf(s)[None, :])[0]
-
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
-                sol = scipy.integrate.solve_ivp(rhs, (t[0], t[-1]), x0, t_eval=t, **kws)
+                sol = integrate(f, x0, t, uf, kws)
             trajectories[i, : sol.y.shape[1]] = sol.y.T
             stopped += not sol.success
         if stopped:

@@ -29,21 +29,19 @@ FORMAT_VERSION = 1
 def library_spec(lib: BaseLibrary) -> dict:
     """A JSON-ready description of a library, or a ``ValueError`` naming what is not."""
     if isinstance(lib, PolynomialLibrary):
-        inputs = None if lib.inputs is None else [_plain(v) for v in lib.inputs]
         return {
             "type": "polynomial",
             "degree": int(lib.degree),
             "include_bias": bool(lib.include_bias),
-            "inputs": inputs,
+            "inputs": _inputs_spec(lib),
         }
     if isinstance(lib, FourierLibrary):
-        inputs = None if lib.inputs is None else [_plain(v) for v in lib.inputs]
         return {
             "type": "fourier",
             "n_frequencies": int(lib.n_frequencies),
             "include_sin": bool(lib.include_sin),
             "include_cos": bool(lib.include_cos),
-            "inputs": inputs,
+            "inputs": _inputs_spec(lib),
         }
     if isinstance(lib, CustomLibrary) and lib.portable:
         return {
@@ -58,6 +56,11 @@ def library_spec(lib: BaseLibrary) -> dict:
         "file holds no code): give CustomLibrary its features as expression strings, e.g. "
         "CustomLibrary(['sin(x) * y']), or use PolynomialLibrary and FourierLibrary"
     )
+
+
+def _inputs_spec(lib) -> list | None:
+    """A library's ``inputs`` parameter as JSON values."""
+    return None if lib.inputs is None else [_plain(v) for v in lib.inputs]
 
 
 def library_from_spec(spec: dict) -> BaseLibrary:

@@ -30,6 +30,8 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin, clone
 from sklearn.utils import check_array
 
+from ._validation import check_int
+
 __all__ = [
     "FUNCTIONS",
     "BaseLibrary",
@@ -161,6 +163,12 @@ class BaseLibrary(TransformerMixin, BaseEstimator):
             return int(ref)
         raise ValueError(f"{what} entries must be input names or indices; got {ref!r}")
 
+    def _input_columns(self) -> list[int]:
+        """Positions of the ``inputs`` parameter's inputs (all inputs when it is None)."""
+        if self.inputs is None:
+            return list(range(self.n_features_in_))
+        return [self._index(ref, "inputs") for ref in self.inputs]
+
     def _check_fitted(self) -> None:
         if not hasattr(self, "input_names_"):
             raise ValueError(f"this {type(self).__name__} is not fitted yet: call fit first")
@@ -222,14 +230,8 @@ class PolynomialLibrary(BaseLibrary):
 
     def fit(self, x, y=None, input_names=None) -> PolynomialLibrary:
         x = self._fit_inputs(x, input_names)
-        d = self.degree
-        if isinstance(d, bool) or not isinstance(d, (int, np.integer)) or d < 0:
-            raise ValueError(f"degree must be an integer >= 0; got {d!r}")
-        cols = (
-            list(range(x.shape[1]))
-            if self.inputs is None
-            else [self._index(ref, "inputs") for ref in self.inputs]
-        )
+        d = check_int(self.degree, "degree", 0)
+        cols = self._input_columns()
         start = 0 if self.include_bias else 1
         self.powers_ = [
             tuple(cols[i] for i in combo)
@@ -307,16 +309,10 @@ class FourierLibrary(BaseLibrary):
 
     def fit(self, x, y=None, input_names=None) -> FourierLibrary:
         x = self._fit_inputs(x, input_names)
-        k = self.n_frequencies
-        if isinstance(k, bool) or not isinstance(k, (int, np.integer)) or k < 1:
-            raise ValueError(f"n_frequencies must be an integer >= 1; got {k!r}")
+        k = check_int(self.n_frequencies, "n_frequencies", 1)
         if not (self.include_sin or self.include_cos):
             raise ValueError("include_sin and include_cos are both False: the library is empty")
-        cols = (
-            list(range(x.shape[1]))
-            if self.inputs is None
-            else [self._index(ref, "inputs") for ref in self.inputs]
-        )
+        cols = self._input_columns()
         kinds = [f for f, on in (("sin", self.include_sin), ("cos", self.include_cos)) if on]
         self.terms_ = [(f, j, i) for j in range(1, k + 1) for i in cols for f in kinds]
         self.n_output_features_ = len(self.terms_)

@@ -519,7 +519,6 @@ class HuberSINDy(BaseEstimator):
             dt = float(t)
             if not (np.isfinite(dt) and dt > 0):
                 raise ValueError(f"t as a time step must be a finite number > 0; got {t!r}")
-            _check_differentiation(self.differentiation)
 
             def derivative(block):
                 return self._differentiate(block, dt * np.arange(block.shape[0]))
@@ -608,14 +607,7 @@ class HuberSINDy(BaseEstimator):
         q = 0 if us is None else us[0].shape[1]
         if us is not None and any(a.shape[1] != q for a in us):
             raise ValueError("u: every trajectory must have the same number of controls")
-        if feature_names is None:
-            feature_names = [f"x{i}" for i in range(n)] + [f"u{i}" for i in range(q)]
-        feature_names = [str(s) for s in feature_names]
-        if len(feature_names) != n + q:
-            raise ValueError(
-                f"feature_names has {len(feature_names)} names but there are {n} states "
-                f"and {q} controls: give one name per state, then per control"
-            )
+        feature_names = input_names(feature_names, n, q)
         self.n_control_features_ = q
         self.feature_names_ = feature_names
         self.library_ = clone(self.library) if self.library is not None else PolynomialLibrary()
@@ -1025,32 +1017,10 @@ class HuberSINDy(BaseEstimator):
             as_frame = _is_series(x0)
         if _is_series(x0):
             x0 = x0.to_numpy(dtype=float)
-        t = check_time(t, "t")
-        x0 = as_float_array(x0, "x0", (1,))
-        n = self.coef_.shape[0]
-        if x0.size != n:
-            raise ValueError(f"x0 has {x0.size} values; the model has {n} states")
-        uf = input_function(u, t)
-        q = self.n_control_features_
-        if (uf is None) != (q == 0):
-            raise ValueError(
-                f"u is required: the model was fitted with {q} controls"
-                if q
-                else "u given, but the model was fitted without controls"
-            )
-        if uf is not None:
-            width = np.size(uf(t[0]))
-            if width != q:
-                raise ValueError(f"u has {width} columns but the model was fitted with {q}")
-
+        t, x0, uf = simulation_inputs(x0, t, u, self.coef_.shape[0], self.n_control_features_)
         f = self.export_rhs()
-
-        def rhs(s, state):
-            # One sample as a batch of one: library callables get 1-D arrays, as in fit.
-            return f(s, state[None, :], None if uf is None else uf(s)[None, :])[0]
-
         kws = {"method": "LSODA", "rtol": 1e-10, "atol": 1e-10, **integrator_kws}
-        sol = scipy.integrate.solve_ivp(rhs, (t[0], t[-1]), x0, t_eval=t, **kws)
+        sol = integrate(f, x0, t, uf, kws)
         if not sol.success:
             warnings.warn(f"simulate stopped early: {sol.message}", UserWarning, stacklevel=2)
         out = sol.y.T
@@ -1059,6 +1029,50 @@ class HuberSINDy(BaseEstimator):
 
             return pd.DataFrame(out, index=pd.Index(t[: len(out)], name="t"), columns=f.state_names)
         return out
+
+
+def input_names(names, n: int, q: int) -> list[str]:
+    """Names of ``n`` states then ``q`` controls: ``names`` checked, or ``x0.., u0..``."""
+    if names is None:
+        return [f"x{i}" for i in range(n)] + [f"u{i}" for i in range(q)]
+    names = [str(s) for s in names]
+    if len(names) != n + q:
+        raise ValueError(
+            f"feature_names has {len(names)} names but there are {n} states "
+            f"and {q} controls: give one name per state, then per control"
+        )
+    return names
+
+
+def simulation_inputs(x0, t, u, n: int, q: int):
+    """``t``, ``x0`` and the input function of a simulation of ``n`` states and ``q``
+    controls, checked (``u`` as :func:`robust_sindy.simulate.input_function` takes it)."""
+    t = check_time(t, "t")
+    x0 = as_float_array(x0, "x0", (1,))
+    if x0.size != n:
+        raise ValueError(f"x0 has {x0.size} values; the model has {n} states")
+    uf = input_function(u, t)
+    if (uf is None) != (q == 0):
+        raise ValueError(
+            f"u is required: the model was fitted with {q} controls"
+            if q
+            else "u given, but the model was fitted without controls"
+        )
+    if uf is not None:
+        width = np.size(uf(t[0]))
+        if width != q:
+            raise ValueError(f"u has {width} columns but the model was fitted with {q}")
+    return t, x0, uf
+
+
+def integrate(f, x0, t, uf, kws: dict):
+    """:func:`scipy.integrate.solve_ivp` of an exported right-hand side ``f`` on ``t``."""
+
+    def rhs(s, state):
+        # One sample as a batch of one: library callables get 1-D arrays, as in fit.
+        return f(s, state[None, :], None if uf is None else uf(s)[None, :])[0]
+
+    return scipy.integrate.solve_ivp(rhs, (t[0], t[-1]), x0, t_eval=t, **kws)
 
 
 def _check_differentiation(how) -> None:
