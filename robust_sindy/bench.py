@@ -192,6 +192,8 @@ def _guarded(name, theta, y, *, repeats, budget, limit):
     """
     import multiprocessing
 
+    if multiprocessing.current_process().daemon:  # a worker that may not have children
+        return _limited(name, theta, y, repeats=repeats, budget=budget, limit=limit)
     ctx = multiprocessing.get_context("fork")
     parent, child = ctx.Pipe(duplex=False)
     proc = ctx.Process(target=_child, args=(child, name, theta, y, repeats, budget, limit))
@@ -206,6 +208,20 @@ def _guarded(name, theta, y, *, repeats, budget, limit):
     if isinstance(out, Exception):
         raise out
     return out
+
+
+def _limited(name, theta, y, *, repeats, budget, limit):
+    """``time_solver`` in a thread of this process, given up after ``limit`` seconds
+    (where no child process can be started; the thread is left to finish)."""
+    import concurrent.futures
+
+    pool = concurrent.futures.ThreadPoolExecutor(max_workers=1)
+    job = pool.submit(time_solver, _runner(name, limit), theta, y, repeats=repeats, budget=budget)
+    pool.shutdown(wait=False)
+    try:
+        return job.result(timeout=limit)
+    except concurrent.futures.TimeoutError:
+        raise TimeoutError(f"no result within {limit:.0f} s (given up)") from None
 
 
 def counted_passes(theta, y) -> int:
@@ -225,6 +241,7 @@ def run(
     repeats: int = 5,
     skip_after: float = 60.0,
     progress: bool = True,
+    jobs: int = 1,
 ) -> list[BenchRow]:  # fmt: skip
     """Run every solver on every ``(m, degree[, states])`` problem; returns the rows.
 
@@ -235,74 +252,103 @@ def run(
     previous ``m`` of the same degree, scaled linearly in ``m``, exceeds ``skip_after``
     is skipped, with a note.  Slow solvers
     get fewer timed runs (see :func:`time_solver`); the table reports how many.
+
+    The problems of one ``(degree, states)`` form a chain run in order of ``m`` (the
+    skips look back along it); ``jobs`` other than 1 runs the chains in parallel through
+    joblib (on a Dask cluster inside :func:`robust_sindy.parallel.scheduler`).  Every
+    solver of a problem always runs in the same process, one after the other, so the
+    ratios compare like with like; absolute times of chains run side by side share
+    the machine.
     """
+    from joblib import Parallel, delayed
     from tqdm import tqdm
 
-    rows: list[BenchRow] = []
-    last: dict[tuple, tuple[int, float]] = {}  # (solver, degree, states) -> (m, seconds)
-    bar = tqdm(total=len(sizes) * len(solvers), desc="bench", disable=not progress)
-    for size in sizes:
+    chains: dict[tuple, list] = {}
+    for i, size in enumerate(sizes):
         m, degree, states = (*size, 3)[:3]
-        theta, y = bench_problem(m, degree, states=states)
-        label = f"Lorenz degree {degree}" if states == 3 else f"2 x Lorenz degree {degree}"
-        block = []
-        for name in solvers:
+        chains.setdefault((degree, states), []).append((i, m, degree, states))
+    if jobs == 1:
+        bar = tqdm(total=len(sizes) * len(solvers), desc="bench", disable=not progress)
+        done = [_chain(c, solvers, repeats, skip_after, bar) for c in chains.values()]
+        bar.close()
+    else:
+        tasks = (delayed(_chain)(c, solvers, repeats, skip_after) for c in chains.values())
+        out = Parallel(n_jobs=jobs, return_as="generator_unordered")(tasks)
+        done = list(tqdm(out, total=len(chains), desc="bench chains", disable=not progress))
+    blocks = sorted((b for chain in done for b in chain), key=lambda b: b[0])
+    return [r for _, block in blocks for r in block]
+
+
+def _chain(problems, solvers, repeats, skip_after, bar=None) -> list[tuple[int, list]]:
+    """The blocks (index, rows) of one chain of problems (see :func:`run`)."""
+    last: dict[str, tuple[int, float]] = {}  # solver -> (m, seconds) at the previous m
+    return [
+        (i, _block(m, degree, states, solvers, repeats, skip_after, last, bar))
+        for i, m, degree, states in problems
+    ]
+
+
+def _block(m, degree, states, solvers, repeats, skip_after, last, bar) -> list[BenchRow]:
+    """Every solver on one problem, side by side in this process."""
+    theta, y = bench_problem(m, degree, states=states)
+    label = f"Lorenz degree {degree}" if states == 3 else f"2 x Lorenz degree {degree}"
+    block = []
+    for name in solvers:
+        row = BenchRow(label, m, theta.shape[1], name)
+        block.append(row)
+        if bar is not None:
             bar.set_postfix_str(f"m={m} p={theta.shape[1]} {name}")
-            row = BenchRow(label, m, theta.shape[1], name)
-            block.append(row)
             bar.update()
-            mod = {"skglm": "skglm", "PySINDy STLSQ": "pysindy"}.get(name)
-            if mod and not _available(mod):
-                row.note = f"skipped: {mod} not installed (pip install 'robust-sindy[bench]')"
+        mod = {"skglm": "skglm", "PySINDy STLSQ": "pysindy"}.get(name)
+        if mod and not _available(mod):
+            row.note = f"skipped: {mod} not installed (pip install 'robust-sindy[bench]')"
+            continue
+        prev = last.get(name)
+        if prev is not None and prev[1] * m / prev[0] > skip_after:
+            row.note = (
+                f"skipped: {prev[1]:.3g} s at m = {prev[0]} extrapolates linearly to "
+                f"over {skip_after:.0f} s"
+            )
+            continue
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            warnings.simplefilter("ignore", UserWarning)
+            budget = max(10.0, skip_after)
+            try:
+                if name == "skglm":
+                    t, runs, coef, peak = _guarded(
+                        name, theta, y, repeats=repeats, budget=budget, limit=2 * budget
+                    )
+                else:
+                    t, runs, coef, peak = time_solver(
+                        _runner(name, skip_after), theta, y, repeats=repeats, budget=budget
+                    )
+            except TimeoutError as exc:
+                row.note = f"stopped: {exc}"
+                last[name] = (m, np.inf)
                 continue
-            prev = last.get((name, degree, states))
-            if prev is not None and prev[1] * m / prev[0] > skip_after:
-                row.note = (
-                    f"skipped: {prev[1]:.3g} s at m = {prev[0]} extrapolates linearly to "
-                    f"over {skip_after:.0f} s"
-                )
+            except Exception as exc:  # a peer failing is a result, not a crash
+                row.note = f"failed: {type(exc).__name__}: {exc}"[:120]
                 continue
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ConvergenceWarning)
-                warnings.simplefilter("ignore", UserWarning)
-                budget = max(10.0, skip_after)
-                try:
-                    if name == "skglm":
-                        t, runs, coef, peak = _guarded(
-                            name, theta, y, repeats=repeats, budget=budget, limit=2 * budget
-                        )
-                    else:
-                        t, runs, coef, peak = time_solver(
-                            _runner(name, skip_after), theta, y, repeats=repeats, budget=budget
-                        )
-                except TimeoutError as exc:
-                    row.note = f"stopped: {exc}"
-                    last[(name, degree, states)] = (m, np.inf)
-                    continue
-                except Exception as exc:  # a peer failing is a result, not a crash
-                    row.note = f"failed: {type(exc).__name__}: {exc}"[:120]
-                    continue
-            row.time, row.runs, row.peak_mb = t, runs, peak
-            row.kkt = float(np.max(kkt_violation(theta, y, coef, delta=DELTA, lam=LAM)))
-            row.objective = objective(theta, y, coef, delta=DELTA, lam=LAM)
-            last[(name, degree, states)] = (m, t)
-        base = block[0].time if block[0].solver == FAST else np.nan
-        found = [r.objective for r in block if r.solver in HUBER_SOLVERS and r.runs
-                 and r.kkt < 1e-3]  # fmt: skip
-        best = np.min(found, axis=0) if found else None
-        for r in block:
-            if not r.runs:
-                continue
-            r.ratio = r.time / base
-            if best is not None and r.solver in HUBER_SOLVERS:
-                r.gap = float(np.max((r.objective - best) / np.abs(best)))
-            if r.solver == "PySINDy STLSQ":
-                r.note = "least squares: a different problem; gap and KKT refer to the Huber one"
-        if block[0].runs and block[0].solver == FAST:
-            block[0].passes = counted_passes(theta, y)
-        rows += block
-    bar.close()
-    return rows
+        row.time, row.runs, row.peak_mb = t, runs, peak
+        row.kkt = float(np.max(kkt_violation(theta, y, coef, delta=DELTA, lam=LAM)))
+        row.objective = objective(theta, y, coef, delta=DELTA, lam=LAM)
+        last[name] = (m, t)
+    base = block[0].time if block[0].solver == FAST else np.nan
+    found = [r.objective for r in block if r.solver in HUBER_SOLVERS and r.runs
+             and r.kkt < 1e-3]  # fmt: skip
+    best = np.min(found, axis=0) if found else None
+    for r in block:
+        if not r.runs:
+            continue
+        r.ratio = r.time / base
+        if best is not None and r.solver in HUBER_SOLVERS:
+            r.gap = float(np.max((r.objective - best) / np.abs(best)))
+        if r.solver == "PySINDy STLSQ":
+            r.note = "least squares: a different problem; gap and KKT refer to the Huber one"
+    if block[0].runs and block[0].solver == FAST:
+        block[0].passes = counted_passes(theta, y)
+    return block
 
 
 #: Whole identifications compared by :func:`run_pipeline` (PySINDy ones optional).

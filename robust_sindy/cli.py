@@ -8,10 +8,10 @@ the shipped lynx-hare data as ``./lynx_hare.csv`` to try it on.
 ``robust-sindy reproduce [lorenz|drone|all] [--seeds N] [--out DIR] [--jobs J]``
 re-runs the paper's experiments over many seeds, prints the tables and writes Markdown,
 CSV and PNG files to ``DIR`` (default ``./reproduce_results``).  ``robust-sindy bench
-[--quick]`` times the fast path against the solvers people would use instead and writes
-``benchmark.md``/``.csv``/``.png`` (default ``./bench_results``).  ``robust-sindy zoo``
-identifies the polynomial flows of dysts under six contaminations.  No command writes
-into the package's committed results unless ``--out`` points there.
+[--quick] [--scheduler ADDRESS]`` times the fast path against the solvers people would use
+instead and writes ``benchmark.md``/``.csv``/``.png`` (default ``./bench_results``).
+``robust-sindy zoo`` identifies the polynomial flows of dysts under six contaminations.
+No command writes into the package's committed results unless ``--out`` points there.
 """
 
 from __future__ import annotations
@@ -106,13 +106,16 @@ def _reproduce_run(args, n_jobs) -> int:
 
 def _bench(args) -> int:
     from . import bench
+    from .parallel import scheduler
 
     if args.quick:
         sizes, repeats, pipe_sizes, path_m = ((200, 2),), 1, ((300, 3),), 300
     else:
         sizes, repeats = bench.run.__defaults__[0], args.repeats
         pipe_sizes, path_m = bench.run_pipeline.__defaults__[0], 10_000
-    rows = bench.run(sizes, repeats=repeats, skip_after=args.skip_after, progress=not args.quiet)
+    with scheduler(args.scheduler):
+        rows = bench.run(sizes, repeats=repeats, skip_after=args.skip_after,
+                         progress=not args.quiet, jobs=-1 if args.scheduler else 1)  # fmt: skip
     pipelines = bench.run_pipeline(pipe_sizes, repeats=repeats, progress=not args.quiet)
     cost = bench.path_cost(path_m)
     command = "robust-sindy bench" + (" --quick" if args.quick else "")
@@ -209,11 +212,11 @@ def _folder(text: str) -> str:
     return text
 
 
-def _add_scheduler(parser) -> None:
+def _add_scheduler(parser, what: str = "the seeds") -> None:
     parser.add_argument(
         "--scheduler",
         metavar="ADDRESS",
-        help="run the seeds on Dask: 'local' (a LocalCluster) or a scheduler address "
+        help=f"run {what} on Dask: 'local' (a LocalCluster) or a scheduler address "
         '(needs pip install "robust-sindy[dask]"; --jobs is then ignored)',
     )
 
@@ -312,6 +315,7 @@ def main(argv: list[str] | None = None) -> int:
         help="skip a solver at larger sizes after (60 s)",
     )
     ben.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_scheduler(ben, "the problem sizes (one library size per worker, its solvers side by side)")
     zoo_ = sub.add_parser(
         "zoo",
         help="identify the polynomial flows of dysts under six contaminations "

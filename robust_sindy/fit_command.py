@@ -360,6 +360,15 @@ def _summary(model, job, source: str, messages) -> list[str]:
         "",
         repr(d),
     ]
+    names = model.get_feature_names()
+    for label, mask in (
+        ("dropped as errors-in-variables bias", model.bias_dropped_),
+        ("left out below the noise floor", np.isfinite(model.below_floor_)),
+    ):
+        for state, row in zip(job.states, mask, strict=True):
+            if row.any():
+                terms = ", ".join(repr(names[j]) for j in np.flatnonzero(row))
+                lines.append(f"  ({state})': {label}: {terms}")
     others = [m for m in messages if m not in d.problems()]
     if others:
         lines += ["", "Other warnings:"] + [f"  - {m}" for m in others]

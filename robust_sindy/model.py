@@ -27,7 +27,9 @@ from ._validation import as_float_array, per_column
 from .differentiation import finite_difference, local_polynomial_derivative, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
+from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
 from .selection.path import pilot_budget
+from .selection.refit import one_step_contributions
 from .selection.screening import temporal_screen
 from .simulate import check_time, input_function
 from .solvers.chunked import is_dask
@@ -95,6 +97,19 @@ class Diagnostics:
         ``STABILITY_TOLERANCE`` of its value, when one of ``STABILITY_BLOCKS``
         contiguous blocks of the kept samples is left out of the refit: the data do not
         pin them down (a spurious term, or a true one the data barely excite).
+    bias_ratio : ndarray (n, p)
+        For terms the selection chose but then dropped because their coefficient was
+        within ``BIAS_MARGIN`` times the bias that the noise of the states, through the
+        other selected terms, could give it (errors in the variables, see
+        :mod:`robust_sindy.selection.bias`): the coefficient over that bias bound when
+        dropped; NaN for every other term (all NaN without the temporal screen or with a
+        fixed ``lam``).  A ratio of at least 1 is a term that the bias alone does not
+        explain, dropped only for want of margin: it may be real, and a warning says so.
+    below_floor : ndarray (n, p)
+        Unselected terms whose relative contribution, were they added, lies between
+        ``selection_tol`` and the noise floor ``selection_tol_`` that the library noise
+        raised it to: the floor, not the data, left them out, so they may be real (a
+        warning says so); NaN for every other term.
     """
 
     n_samples: int
@@ -111,6 +126,8 @@ class Diagnostics:
     condition_number: np.ndarray
     library_noise: float
     unstable: np.ndarray
+    bias_ratio: np.ndarray
+    below_floor: np.ndarray
 
     def problems(self) -> list[str]:
         """One sentence for each reason to doubt the model (empty when there is none)."""
@@ -165,6 +182,29 @@ class Diagnostics:
                 "diagnostics_.unstable, and try more data, measured derivatives or a "
                 "smaller library"
             )
+        doubtful = np.flatnonzero((np.nan_to_num(self.bias_ratio) >= 1.0).any(axis=1))
+        if doubtful.size:
+            counts = ", ".join(
+                str(int(c)) for c in (np.nan_to_num(self.bias_ratio[doubtful]) >= 1.0).sum(axis=1)
+            )
+            out.append(
+                f"equations {doubtful.tolist()}: {counts} terms were dropped because they lie "
+                f"within {BIAS_MARGIN:g} times the bias that the noise of the states gives "
+                "them through the other terms (errors in the variables), yet exceed that "
+                "bias: they may be real, and these data cannot decide (see "
+                "diagnostics_.bias_ratio); less noisy states, a longer trajectory or a "
+                "smaller library would"
+            )
+        floor = np.flatnonzero(np.isfinite(self.below_floor).any(axis=1))
+        if floor.size:
+            counts = ", ".join(str(int(c)) for c in np.isfinite(self.below_floor[floor]).sum(1))
+            out.append(
+                f"equations {floor.tolist()}: {counts} terms left out would contribute more "
+                "than selection_tol but less than the noise of the library columns "
+                "(selection_tol_): the noise, not the data, decided them, and they may be "
+                "real (see diagnostics_.below_floor); less noisy states or a smaller "
+                "library would decide"
+            )
         return out
 
     def __repr__(self) -> str:
@@ -180,6 +220,10 @@ class Diagnostics:
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
             f"  library noise along its weakest direction: {self.library_noise:.2g}",
             f"  unstable terms per equation: {self.unstable.sum(axis=1).tolist()}",
+            "  terms dropped as errors-in-variables bias per equation: "
+            f"{np.isfinite(self.bias_ratio).sum(axis=1).tolist()}",
+            "  terms left out below the noise floor per equation: "
+            f"{np.isfinite(self.below_floor).sum(axis=1).tolist()}",
         ]
         problems = self.problems()
         lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
@@ -223,7 +267,11 @@ class HuberSINDy(BaseEstimator):
     3. ``lam="auto"``: a warm-started ``lam`` path, the selection stage (drop terms
        below ``selection_tol`` relative contribution, refit by Huber with ``lam = 0``)
        at every point, and the point with the best robust BIC or blocked
-       cross-validation score (:func:`robust_sindy.selection.select`).
+       cross-validation score (:func:`robust_sindy.selection.select`);
+    4. ``lam="auto"`` with the screen: selected terms within ``BIAS_MARGIN`` times the
+       bias that the states' noise can give them through the other terms (errors in
+       the variables, :mod:`robust_sindy.selection.bias`) are dropped one at a time
+       and the rest refitted (``bias_dropped_``).
 
     Fixed values turn each step into the plain estimator (``screen=False``,
     ``delta=1.0, lam=1.0`` is the paper's).  ``threshold`` and ``refit`` then act on
@@ -316,6 +364,14 @@ class HuberSINDy(BaseEstimator):
         (samples of all trajectories stacked in order).
     result_ : FitResult
         The penalised fit at ``lam_`` on the kept samples (before threshold and refit).
+    bias_dropped_ : ndarray of bool, shape (n_targets, n_features)
+        Terms dropped by step 4.
+    bias_ratio_ : ndarray, shape (n_targets, n_features)
+        Their coefficient over their bias bound when dropped (NaN elsewhere).
+    below_floor_ : ndarray, shape (n_targets, n_features)
+        Unselected terms whose contribution if added (one Newton step,
+        :func:`robust_sindy.selection.refit.one_step_contributions`) lies between
+        ``selection_tol`` and the noise floor ``selection_tol_``; NaN elsewhere.
 
     Examples
     --------
@@ -488,7 +544,9 @@ class HuberSINDy(BaseEstimator):
         times the larger of the sample's robust scale and the local robust scale of the
         residuals within 25 samples, in any equation (the model screen's rule; here the
         local scale counts every sample, not only those the temporal screen left alone).
-        One trajectory: a list of Dask arrays is refused.
+        A list of trajectories (``x``, and ``x_dot``, ``u`` and ``t`` when given, one
+        each, or ``t`` one step for all) is sampled from its start, whole trajectories
+        first; derivatives and local scales never reach across two trajectories.
         """
         import dask.array as da
 
@@ -496,22 +554,35 @@ class HuberSINDy(BaseEstimator):
         from .outofcore import dask_library
         from .selection.screening import local_scale
 
-        if isinstance(x, (list, tuple)):
-            raise ValueError(
-                "with Dask arrays, x must be one trajectory (a 2-D Dask array), not a list; "
-                "fit trajectories of this size one at a time, or concatenate them"
-            )
-        x = da.asarray(x)
-        if x.ndim != 2:
-            raise ValueError(f"x must be 2-D (one trajectory) with Dask; got shape {x.shape}")
-        m = x.shape[0]
-        u = None if u is None else da.asarray(u)
-        if u is not None and u.ndim == 1:
-            u = u[:, None]
-        if u is not None and u.shape[0] != m:
-            raise ValueError(f"u has {u.shape[0]} samples but x has {m}")
-        if x_dot is None:
-            if t is None or is_dask(t) or np.ndim(t) != 0:
+        multiple = isinstance(x, (list, tuple))
+        xs = [da.asarray(a) for a in (x if multiple else [x])]
+        if not xs:
+            raise ValueError("x is an empty list: give at least one trajectory")
+        if any(a.ndim != 2 for a in xs):
+            shapes = [a.shape for a in xs]
+            raise ValueError(f"with Dask, each trajectory of x must be 2-D; got shapes {shapes}")
+        if any(a.shape[1] != xs[0].shape[1] for a in xs):
+            raise ValueError("x: every trajectory must have the same number of states")
+
+        def per_trajectory(value, name):
+            if value is None:
+                return [None] * len(xs)
+            if not multiple:
+                return [value]
+            if not isinstance(value, (list, tuple)) or len(value) != len(xs):
+                raise ValueError(f"{name} must be a list with one array per trajectory of x")
+            return list(value)
+
+        us = [None if a is None else da.asarray(a) for a in per_trajectory(u, "u")]
+        us = [a[:, None] if a is not None and a.ndim == 1 else a for a in us]
+        for a, b in zip(us, xs, strict=True):
+            if a is not None and a.shape[0] != b.shape[0]:
+                raise ValueError(f"u has {a.shape[0]} samples but x has {b.shape[0]}")
+        step = t is not None and not isinstance(t, (list, tuple)) and np.ndim(t) == 0
+        ts = [t] * len(xs) if step or t is None else per_trajectory(t, "t")
+        ds = per_trajectory(x_dot, "x_dot")
+        if any(d is None for d in ds):
+            if not step or is_dask(t):
                 raise ValueError(
                     "with a Dask x, derivatives are computed out of core for a uniform time "
                     "step only: pass t as a number (the step), or pass x_dot"
@@ -525,40 +596,65 @@ class HuberSINDy(BaseEstimator):
 
             # Each chunk with DASK_OVERLAP samples of its neighbours on either side: the
             # temporal screen's and the stencils' windows lie well within them.
-            x = x.rechunk({1: -1})
-            x_dot = x.map_overlap(
-                derivative, depth={0: DASK_OVERLAP, 1: 0}, boundary="none", dtype=float
-            )
-        x_dot = da.asarray(x_dot)
-        x_dot = x_dot[:, None] if x_dot.ndim == 1 else x_dot
-        if x_dot.shape != x.shape:
-            raise ValueError(f"x_dot has shape {x_dot.shape} but x has shape {x.shape}")
-        k = min(m, DASK_SAMPLE)
-        t_sample = None
-        if t is not None:
-            t_arr = np.asarray(t, dtype=float) if not is_dask(t) else np.asarray(t[:k])
-            t_sample = t_arr if t_arr.ndim == 0 else t_arr[:k]
-        sample = [
-            None if a is None else np.asarray(a[:k].compute(), dtype=float) for a in (x, x_dot, u)
-        ]
-        self._fit(*self._trajectories(sample[0], t_sample, sample[1], sample[2],
+            xs = [a.rechunk({1: -1}) for a in xs]
+            ds = [
+                a.map_overlap(
+                    derivative, depth={0: DASK_OVERLAP, 1: 0}, boundary="none", dtype=float
+                )
+                for a in xs
+            ]
+        ds = [da.asarray(d) for d in ds]
+        ds = [d[:, None] if d.ndim == 1 else d for d in ds]
+        for d, a in zip(ds, xs, strict=True):
+            if d.shape != a.shape:
+                raise ValueError(f"x_dot has shape {d.shape} but x has shape {a.shape}")
+        # The sample: the first DASK_SAMPLE samples, whole trajectories first.
+        left, sample = DASK_SAMPLE, []
+        for a, d, b, ti in zip(xs, ds, us, ts, strict=True):
+            if left <= 0:
+                break
+            k = min(a.shape[0], left)
+            left -= k
+            if ti is not None and np.ndim(ti) > 0:
+                ti = np.asarray(ti[:k], dtype=float)
+            got = da.compute(a[:k], d[:k], *([] if b is None else [b[:k]]))
+            got = [np.asarray(v, dtype=float) for v in got]
+            sample.append((got[0], ti, got[1], got[2] if b is not None else None))
+        sx, st, sd, su = (list(v) for v in zip(*sample, strict=True))
+        one = len(sample) == 1
+        t_sample = None if t is None else (st[0] if step or one else [np.asarray(v) for v in st])
+        self._fit(*self._trajectories(sx[0] if one else sx, t_sample, sd[0] if one else sd,
+                                      None if su[0] is None else (su[0] if one else su),
                                       need_t=False), feature_names)  # fmt: skip
         coef_sample = self.coef_.T.copy()
         # The sample's model and scales screen every sample, chunk by chunk.
-        _, theta = dask_library(self.library_, x, u, input_names=self.library_.input_names_)
-        theta_sample = self.library_.transform(self._inputs(sample[0], sample[2]))
-        r_sample = sample[1] - theta_sample @ coef_sample
         kept = ~self.screened_
+        r_sample = (
+            np.vstack(sd)
+            - self.library_.transform(
+                np.vstack([self._inputs(a, b) for a, b in zip(sx, su, strict=True)])
+            )
+            @ coef_sample
+        )
         scale = np.maximum(robust_scale(r_sample[kept]), np.finfo(float).tiny)
-        r = x_dot - theta @ da.from_array(coef_sample)
-        # As the model screen: the larger of the global scale and the residuals' local
-        # robust scale within 25 samples (residuals that grow along a fast part of the
-        # trajectory are not outliers), each chunk with 25 samples of its neighbours.
-        local = da.map_overlap(
-            lambda b: local_scale(b, 25), r, depth={0: 25, 1: 0}, boundary="none",
-            dtype=float,
-        )  # fmt: skip
-        bad = (abs(r) > 3.5 * da.maximum(local, scale)).any(axis=1)
+        thetas, rs_, bads = [], [], []
+        for a, d, b in zip(xs, ds, us, strict=True):
+            _, theta_i = dask_library(self.library_, a, b, input_names=self.library_.input_names_)
+            r_i = d - theta_i @ da.from_array(coef_sample)
+            # As the model screen: the larger of the global scale and the residuals' local
+            # robust scale within 25 samples (residuals that grow along a fast part of the
+            # trajectory are not outliers), each chunk with 25 samples of its neighbours.
+            local = da.map_overlap(
+                lambda v: local_scale(v, 25), r_i, depth={0: 25, 1: 0}, boundary="none",
+                dtype=float,
+            )  # fmt: skip
+            thetas.append(theta_i)
+            rs_.append(r_i)
+            bads.append((abs(r_i) > 3.5 * da.maximum(local, scale)).any(axis=1))
+        theta, r, bad = (da.concatenate(v, axis=0) for v in (thetas, rs_, bads))
+        x_dot = da.concatenate(ds, axis=0)
+        m = theta.shape[0]
+        k = sum(a.shape[0] for a in sx)
         keep = ~bad
         theta_k = theta * keep[:, None]
         y_k = x_dot * keep[:, None]
@@ -654,7 +750,8 @@ class HuberSINDy(BaseEstimator):
         # A term that contributes less than the noise of the library columns themselves
         # cannot be told from errors in the variables: the selection stage's threshold
         # is at least the relative noise of the noisiest column.
-        self.library_noise_ = self._library_noise(z, keep, th)
+        noise = self._noise_columns(z, keep)
+        self.library_noise_ = self._library_noise(noise, th)
         column_noise = self.library_noise_[0]
         self.selection_tol_ = float(
             max(self.selection_tol, np.max(column_noise))
@@ -716,6 +813,32 @@ class HuberSINDy(BaseEstimator):
             # lam="auto": the selection stage scored its refits with a bounded budget;
             # the chosen support is refitted here in user units with the full one.
             coef = self._refit(theta[keep], y[keep], coef, options)
+        ratio = np.full(coef.shape, np.nan)
+        if self.selection_ is not None and noise is not None:
+            # Terms the errors in the variables could have selected are not identified.
+            delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
+            _, ratio = drop_biased_terms(
+                th,
+                yk,
+                scaler.coef_to_standard(coef),
+                delta_s,
+                noise_gram(noise),
+                method=huber_method,
+                **pilot_budget(huber_method),
+            )
+            if np.isfinite(ratio).any():
+                coef[np.isfinite(ratio)] = 0.0
+                coef = self._refit(theta[keep], y[keep], coef, options)
+        self.bias_ratio_ = np.ascontiguousarray(ratio.T)
+        self.bias_dropped_ = np.isfinite(self.bias_ratio_)
+        below = np.full(coef.shape, np.nan)
+        if self.selection_ is not None and self.selection_tol_ > self.selection_tol:
+            # Terms left out that the raised noise floor, not the data, decided about.
+            delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
+            contrib = one_step_contributions(th, yk, scaler.coef_to_standard(coef), delta_s)
+            inside = (contrib >= self.selection_tol) & (contrib < self.selection_tol_)
+            below[inside] = contrib[inside]
+        self.below_floor_ = np.ascontiguousarray(below.T)
         self.coef_ = np.ascontiguousarray(coef.T)
         self.support_ = self.coef_ != 0
         self.outliers_ = np.abs(y - theta @ coef) > self.delta_
@@ -825,30 +948,36 @@ class HuberSINDy(BaseEstimator):
                 )
         return unstable.T
 
-    def _library_noise(self, z, keep, theta_kept) -> tuple[np.ndarray, float]:
-        """The states' noise carried through the library (first order, kept samples):
-        per column relative to its root mean square, and along the least-excited
-        direction of the standardised library (see Diagnostics); NaN without the
-        temporal screen, which measures the noise."""
-        p = theta_kept.shape[1]
+    def _noise_columns(self, z, keep) -> list[np.ndarray] | None:
+        """The noise of each state carried through the standardised library, first
+        order, on the kept samples: ``sigma_k dTheta/dx_k / theta_scale`` per state
+        ``k`` (``sigma_k`` measured by the temporal screen); None without it."""
         if self.temporal_ is None or not np.all(np.isfinite(self.temporal_.scale)):
-            return np.full(p, np.nan), float("nan")
+            return None
         base = z[keep].copy()
         n = self.temporal_.scale.size
         base[:, :n] = self.temporal_.repaired[keep]
-        scale = self.standardizer_.theta_scale
-        _, sing, vt = np.linalg.svd(theta_kept, full_matrices=False)
-        columns = np.zeros(p)
-        along = np.zeros(sing.size)
+        out = []
         for k, sigma in enumerate(self.temporal_.scale):
             step = 1e-4 * max(float(np.sqrt(np.mean(base[:, k] ** 2))), np.finfo(float).tiny)
             up, down = base.copy(), base.copy()
             up[:, k] += step
             down[:, k] -= step
             grad = (self.library_.transform(up) - self.library_.transform(down)) / (2 * step)
-            noise = sigma * grad / scale  # standardised columns
-            columns += np.mean(noise**2, axis=0)
-            along += np.sum((noise @ vt.T) ** 2, axis=0)
+            out.append(sigma * grad / self.standardizer_.theta_scale)
+        return out
+
+    @staticmethod
+    def _library_noise(noise, theta_kept) -> tuple[np.ndarray, float]:
+        """The library noise (:meth:`_noise_columns`) per column relative to its root
+        mean square, and along the least-excited direction of the standardised library
+        (see Diagnostics); NaN without the temporal screen, which measures the noise."""
+        p = theta_kept.shape[1]
+        if noise is None:
+            return np.full(p, np.nan), float("nan")
+        _, sing, vt = np.linalg.svd(theta_kept, full_matrices=False)
+        columns = sum(np.mean(a**2, axis=0) for a in noise)
+        along = sum(np.sum((a @ vt.T) ** 2, axis=0) for a in noise)
         rms = np.sqrt(np.mean(theta_kept**2, axis=0))
         columns = np.sqrt(columns) / np.where(rms > 0, rms, 1.0)
         # Exactly degenerate directions (a constant state, duplicated terms) carry no
@@ -885,6 +1014,8 @@ class HuberSINDy(BaseEstimator):
             condition_number=cond,
             library_noise=self.library_noise_[1],
             unstable=self._stability(theta_kept, y_kept),
+            bias_ratio=self.bias_ratio_.copy(),
+            below_floor=self.below_floor_.copy(),
         )
 
     def _warn(self, d: Diagnostics) -> None:

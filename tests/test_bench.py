@@ -3,6 +3,7 @@
 import csv
 
 import numpy as np
+import pytest
 
 from robust_sindy.cli import main
 
@@ -35,3 +36,20 @@ def test_quick_benchmark_writes_the_table_with_small_gaps(tmp_path, capsys):
     report = (tmp_path / "benchmark.md").read_text()
     assert "## Whole identifications" in report and "| HuberSINDy() |" in report
     assert "## Cost of a warm-started lam path" in report
+
+
+def test_bench_chains_on_a_dask_cluster_keep_the_order_and_run_every_solver():
+    pytest.importorskip("distributed")
+    from robust_sindy import bench
+    from robust_sindy.parallel import scheduler
+
+    sizes = ((200, 2), (200, 1), (300, 2))
+    solvers = (bench.FAST, "skglm", "PySINDy STLSQ")
+    with scheduler("local", n_workers=2):
+        rows = bench.run(sizes, solvers=solvers, repeats=1, progress=False, jobs=-1)
+    assert [(r.m, r.p, r.solver) for r in rows] == [
+        (m, {1: 4, 2: 10}[d], s) for m, d in sizes for s in solvers
+    ]
+    for r in rows:
+        assert r.runs == 1, (r.solver, r.note)  # skglm's guard works inside a worker too
+        assert r.solver != bench.FAST or (r.kkt <= 1e-8 and r.ratio == 1.0)

@@ -7,7 +7,7 @@ import numpy as np
 from .._fit import fit
 from .._validation import check_int, check_problem
 
-__all__ = ["STAGE_ROUNDS", "threshold_refit"]
+__all__ = ["STAGE_ROUNDS", "one_step_contributions", "threshold_refit"]
 
 #: Rounds of the selection stage (drop, refit) before the support must be stable.
 STAGE_ROUNDS = 10
@@ -81,3 +81,36 @@ def threshold_refit(
 
         coef[:, k] = _select_column(coef[:, k], tol, rounds, col, ynorm[k], refit)
     return coef[:, 0] if one_d else coef
+
+
+def one_step_contributions(theta, xdot, coef, delta) -> np.ndarray:
+    """Relative contribution each unselected term would have if added (p, n; NaN on the
+    support).
+
+    One Newton step of the Huber fit of each column from its current solution, with the
+    term ``j`` added: ``xi_j = theta_jp^T psi(r) / theta_jp^T W theta_jp`` where ``r`` is
+    the residual, ``W`` the Huber weights (1 inside ``delta``, 0 outside) and
+    ``theta_jp`` the part of ``theta_j`` ``W``-orthogonal to the selected columns; its
+    contribution is ``|xi_j| ||theta_j|| / ||xdot||`` as in :func:`threshold_refit`.
+    Terms the inliers cannot tell from the selected ones get NaN.
+    """
+    theta, y, _ = check_problem(theta, xdot)
+    coef = np.asarray(coef, dtype=float).reshape(theta.shape[1], y.shape[1])
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (y.shape[1],))
+    col = np.linalg.norm(theta, axis=0)
+    out = np.full(coef.shape, np.nan)
+    for k in range(y.shape[1]):
+        sel = np.flatnonzero(coef[:, k])
+        r = y[:, k] - theta @ coef[:, k]
+        psi = np.clip(r, -delta[k], delta[k])
+        w = (np.abs(r) <= delta[k]).astype(float)
+        tw = theta * w[:, None]
+        a = theta[:, sel]
+        b = tw[:, sel].T @ theta  # (s, p)
+        gib = np.linalg.lstsq(b[:, sel], b, rcond=None)[0] if sel.size else b
+        num = theta.T @ psi - gib.T @ (a.T @ psi)
+        den = np.einsum("ij,ij->j", tw, theta) - np.einsum("ij,ij->j", b, gib)
+        ok = (coef[:, k] == 0) & (den > 1e-10 * col**2)
+        ynorm = max(float(np.linalg.norm(y[:, k])), np.finfo(float).tiny)
+        out[ok, k] = np.abs(num[ok] / den[ok]) * col[ok] / ynorm
+    return out

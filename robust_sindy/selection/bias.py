@@ -1,0 +1,101 @@
+"""Errors in the variables: terms the noise of the states could have selected.
+
+The library is evaluated on measured states ``x + e``.  To first order its rows carry
+the noise ``N = sum_k e_k dTheta/dx_k``, and a fit of ``xdot`` on ``Theta(x + e)`` is
+biased towards ``(Theta^T Theta)^{-1} E[N^T N] xi`` (the attenuation of classical
+errors-in-variables regression, spread over correlated terms): with small noise and
+many samples, that bias is systematic, not random, and an information criterion reads
+it as signal.  A selected term whose coefficient is not clearly larger than the bias the
+other terms can give it is not identifiable from these data.
+
+:func:`drop_biased_terms` removes such terms one at a time (the least distinguishable
+first) and refits the rest.  The bound of term ``j`` is ``beta_j = sum_l |M_jl| |xi_l|``
+with ``M = (A_S^T A_S)^{-1} C_S``, ``A_S`` the selected columns and ``C`` the expected
+noise Gram matrix ``sum_k sigma_k^2 G_k^T G_k`` (``G_k`` the library's derivative with
+respect to state ``k``, ``sigma_k`` that state's noise level measured by the temporal
+screen).  The ratio ``|xi_j| / beta_j`` does not change when any column, target or state
+is rescaled, so the rule is unit-free.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .refit import _refit_column
+
+__all__ = ["BIAS_MARGIN", "bias_bound", "drop_biased_terms", "noise_gram"]
+
+#: A selected term is kept only when its coefficient exceeds this many times the bias
+#: that the errors in the variables can give it.
+BIAS_MARGIN = 3.0
+
+
+def noise_gram(noise_columns) -> np.ndarray:
+    """``sum_k N_k^T N_k`` for the library noise per state, ``N_k = sigma_k G_k`` (m, p)."""
+    return sum(a.T @ a for a in noise_columns)
+
+
+def bias_bound(theta, coef, gram) -> np.ndarray:
+    """Per selected term, the bound ``beta = |M| |xi_S|`` (see the module docstring).
+
+    ``theta`` (m, p), ``coef`` (p,) and ``gram`` (p, p) in the same units; returns
+    ``beta`` (p,), ``inf`` where the selected columns are rank deficient (nothing can
+    be vouched for there) and 0 off the support.
+    """
+    sel = np.flatnonzero(coef)
+    out = np.zeros(coef.shape[0])
+    if sel.size == 0:
+        return out
+    a = theta[:, sel]
+    normal = a.T @ a
+    try:
+        factor = np.linalg.cholesky(normal)
+    except np.linalg.LinAlgError:
+        out[sel] = np.inf
+        return out
+    m = np.linalg.solve(factor.T, np.linalg.solve(factor, gram[np.ix_(sel, sel)]))
+    out[sel] = np.abs(m) @ np.abs(coef[sel])
+    return out
+
+
+def drop_biased_terms(
+    theta,
+    xdot,
+    coef,
+    delta,
+    gram,
+    *,
+    margin: float = BIAS_MARGIN,
+    method: str = "admm",
+    solver: str | None = None,
+    **options,
+):
+    """Drop selected terms within ``margin`` times their errors-in-variables bias.
+
+    Per column of ``coef`` (p, n): while the selected term with the smallest ratio
+    ``|xi_j| / beta_j`` (:func:`bias_bound`) is below ``margin``, it is dropped and the
+    others are refitted by the Huber loss with ``lam = 0`` (``delta`` per column;
+    ``method``, ``solver``, ``options`` go to :func:`robust_sindy.fit`).  Returns the new
+    coefficients and, for the dropped terms, their ratio when dropped (p, n; NaN for
+    the others).
+    """
+    coef = np.array(coef, dtype=float)
+    dropped = np.full(coef.shape, np.nan)
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (coef.shape[1],))
+    for k in range(coef.shape[1]):
+        c = coef[:, k]
+        while np.any(c):
+            beta = bias_bound(theta, c, gram)
+            sel = np.flatnonzero(c)
+            with np.errstate(divide="ignore", invalid="ignore"):
+                ratio = np.abs(c[sel]) / beta[sel]
+            ratio = np.where(np.isnan(ratio), np.inf, ratio)
+            worst = int(np.argmin(ratio))
+            if ratio[worst] >= margin or not np.isfinite(beta[sel]).all():
+                break
+            dropped[sel[worst], k] = ratio[worst]
+            keep = c != 0
+            keep[sel[worst]] = False
+            c = _refit_column(theta, xdot[:, k], keep, delta[k], method, solver, options)
+        coef[:, k] = c
+    return coef, dropped

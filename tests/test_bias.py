@@ -1,0 +1,134 @@
+"""Errors in the variables: the bias bound and the terms it drops."""
+
+import warnings
+
+import numpy as np
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from robust_sindy import HuberSINDy, PolynomialLibrary
+from robust_sindy.selection.bias import BIAS_MARGIN, bias_bound, drop_biased_terms, noise_gram
+from robust_sindy.systems import Lorenz
+
+
+def _problem(seed=0, m=400, p=5):
+    rng = np.random.default_rng(seed)
+    theta = rng.normal(size=(m, p)) + rng.normal(size=(1, p))
+    coef = np.array([1.5, 0.0, -0.7, 0.02, 0.0])[:p]
+    noise = [0.1 * rng.normal(size=(m, p)) for _ in range(2)]
+    return theta, coef, noise
+
+
+def test_the_gram_of_noise_columns_is_the_sum_of_their_grams():
+    _, _, noise = _problem()
+    assert np.allclose(noise_gram(noise), noise[0].T @ noise[0] + noise[1].T @ noise[1])
+
+
+def test_bias_bound_is_the_absolute_first_order_bias_on_the_support():
+    theta, coef, noise = _problem()
+    gram = noise_gram(noise)
+    beta = bias_bound(theta, coef, gram)
+    sel = np.flatnonzero(coef)
+    a = theta[:, sel]
+    m = np.linalg.solve(a.T @ a, gram[np.ix_(sel, sel)])
+    assert np.allclose(beta[sel], np.abs(m) @ np.abs(coef[sel]))
+    assert np.all(beta[coef == 0] == 0)
+    # rank-deficient selected columns: nothing can be vouched for
+    theta[:, 2] = theta[:, 0]
+    assert np.all(np.isinf(bias_bound(theta, coef, gram)[sel]))
+
+
+@settings(max_examples=40, deadline=None)
+@given(
+    st.lists(st.floats(-3, 3), min_size=5, max_size=5),
+    st.floats(-3, 3),
+    st.integers(0, 1000),
+)
+def test_the_ratio_to_the_bound_is_unit_free(log_cols, log_y, seed):
+    theta, coef, noise = _problem(seed)
+    with np.errstate(invalid="ignore"):
+        ratio = np.abs(coef) / bias_bound(theta, coef, noise_gram(noise))
+    d = 10.0 ** np.array(log_cols)
+    # columns in other units: coefficients scale by 1/d (and by the target's unit)
+    scaled = bias_bound(theta * d, coef / d * 10.0**log_y, noise_gram([a * d for a in noise]))
+    with np.errstate(invalid="ignore"):
+        ratio_scaled = np.abs(coef / d * 10.0**log_y) / scaled
+    sel = coef != 0
+    assert np.allclose(ratio[sel], ratio_scaled[sel], rtol=1e-8)
+
+
+def test_only_terms_within_the_margin_of_their_bias_are_dropped():
+    rng = np.random.default_rng(3)
+    theta, coef, noise = _problem(1, m=2000)
+    y = theta @ coef + 1e-3 * rng.normal(size=2000)
+    gram = noise_gram(noise)
+    fitted = np.linalg.lstsq(theta[:, coef != 0], y, rcond=None)[0]
+    start = np.zeros(5)
+    start[coef != 0] = fitted
+    with np.errstate(invalid="ignore"):
+        ratio = np.abs(start) / bias_bound(theta, start, gram)
+    assert ratio[3] < BIAS_MARGIN <= min(ratio[0], ratio[2])  # the small term is within
+    new, ratios = drop_biased_terms(theta, y[:, None], start[:, None], 1.0, gram)
+    assert np.isfinite(ratios[:, 0]).tolist() == [False, False, False, True, False]
+    assert np.isclose(ratios[3, 0], ratio[3])
+    assert new[3, 0] == 0 and new[0, 0] != 0 and new[2, 0] != 0
+    # without noise in the library nothing is dropped
+    same, none = drop_biased_terms(theta, y[:, None], start[:, None], 1.0, 0.0 * gram)
+    assert np.isnan(none).all() and np.array_equal(same != 0, start[:, None] != 0)
+
+
+def test_heavy_tailed_state_noise_does_not_select_bias_terms():
+    # Student-t noise (2 degrees of freedom) on every state, exact derivatives: the
+    # noisy library biases the fit of (x)' towards x*z and y*z, terms the criterion
+    # would otherwise keep.
+    data = Lorenz().generate(t_end=20.0, dt=0.01)
+    rng = np.random.default_rng(0)
+    x = data.x + 0.01 * data.x.std(axis=0) * rng.standard_t(2, size=data.x.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = HuberSINDy().fit(x, data.t, x_dot=data.x_dot)
+    true = np.zeros((3, 10), dtype=bool)
+    true[0, [1, 2]] = true[1, [1, 2, 6]] = true[2, [3, 5]] = True
+    assert np.array_equal(model.support_, true)
+    assert model.bias_dropped_.any()
+    assert np.array_equal(np.isfinite(model.diagnostics_.bias_ratio), model.bias_dropped_)
+    assert not (model.bias_dropped_ & model.support_).any()
+
+
+def test_clean_states_drop_nothing():
+    data = Lorenz().generate(t_end=10.0)
+    model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(data.x, data.t, x_dot=data.x_dot)
+    assert not model.bias_dropped_.any()
+
+
+def test_a_dropped_term_larger_than_its_bias_is_reported():
+    import dataclasses
+
+    data = Lorenz().generate(t_end=5.0)
+    d = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
+    assert d.problems() == []
+    ratio = np.full((3, 10), np.nan)
+    ratio[1, 4] = 0.6  # explained by the bias: dropped without a word
+    assert dataclasses.replace(d, bias_ratio=ratio).problems() == []
+    ratio[2, 7] = 1.8  # larger than the bias, within the margin: may be real
+    (message,) = dataclasses.replace(d, bias_ratio=ratio).problems()
+    assert message.startswith("equations [2]: 1 terms were dropped") and "may be real" in message
+
+
+def test_one_step_contributions_are_exact_for_least_squares_and_close_for_huber():
+    from robust_sindy import fit
+    from robust_sindy.selection.refit import one_step_contributions
+
+    rng = np.random.default_rng(5)
+    theta = rng.normal(size=(500, 6))
+    # a small missing term (the kind the check is for): one step is close to the refit
+    y = theta @ np.array([2.0, 0.0, -1.0, 0.03, 0.0, 0.0]) + 0.1 * rng.standard_t(3, size=500)
+    for delta, rtol in ((1e6, 1e-8), (0.15, 0.1)):
+        coef = np.zeros(6)
+        coef[[0, 2]] = fit(theta[:, [0, 2]], y, delta=delta, lam=0.0).coef.ravel()
+        steps = one_step_contributions(theta, y[:, None], coef[:, None], delta)[:, 0]
+        assert np.isnan(steps[[0, 2]]).all()
+        for j in (1, 3, 4, 5):
+            full = fit(theta[:, [0, 2, j]], y, delta=delta, lam=0.0).coef.ravel()[2]
+            exact = abs(full) * np.linalg.norm(theta[:, j]) / np.linalg.norm(y)
+            assert np.isclose(steps[j], exact, rtol=rtol, atol=1e-4 * rtol), (delta, j)
