@@ -29,7 +29,7 @@ from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
 from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
 from .selection.path import pilot_budget
-from .selection.refit import one_step_contributions
+from .selection.refit import STAGE_ROUNDS, one_step_contributions
 from .selection.screening import temporal_screen
 from .simulate import check_time, input_function
 from .solvers.chunked import is_dask
@@ -814,21 +814,8 @@ class HuberSINDy(BaseEstimator):
             # the chosen support is refitted here in user units with the full one.
             coef = self._refit(theta[keep], y[keep], coef, options)
         ratio = np.full(coef.shape, np.nan)
-        if self.selection_ is not None and noise is not None:
-            # Terms the errors in the variables could have selected are not identified.
-            delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
-            _, ratio = drop_biased_terms(
-                th,
-                yk,
-                scaler.coef_to_standard(coef),
-                delta_s,
-                noise_gram(noise),
-                method=huber_method,
-                **pilot_budget(huber_method),
-            )
-            if np.isfinite(ratio).any():
-                coef[np.isfinite(ratio)] = 0.0
-                coef = self._refit(theta[keep], y[keep], coef, options)
+        if self.selection_ is not None:
+            coef, ratio = self._final_selection(theta[keep], y[keep], coef, noise, options)
         self.bias_ratio_ = np.ascontiguousarray(ratio.T)
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
         below = np.full(coef.shape, np.nan)
@@ -915,6 +902,42 @@ class HuberSINDy(BaseEstimator):
             solver=solver,
             **options,
         )
+
+    def _final_selection(self, theta, y, coef, noise, options):
+        """On the certified refit: drop the terms below ``selection_tol_`` and those
+        within ``BIAS_MARGIN`` of their errors-in-variables bias (with the screen),
+        refitting after each, until neither drops anything.  Returns the coefficients
+        and the bias ratios of the terms the latter dropped (NaN elsewhere)."""
+        scaler = self.standardizer_
+        th, yk = scaler.theta(theta), scaler.y(y)
+        col = np.linalg.norm(th, axis=0)[:, None]
+        ynorm = np.maximum(np.linalg.norm(yk, axis=0), np.finfo(float).tiny)
+        delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
+        gram = None if noise is None else noise_gram(noise)
+        method = self.method if self.method in ("admm", "cvxpy") else "admm"
+        ratio = np.full(coef.shape, np.nan)
+        for _ in range(STAGE_ROUNDS):
+            small = (coef != 0) & (
+                np.abs(scaler.coef_to_standard(coef)) * col / ynorm < self.selection_tol_
+            )
+            if small.any():
+                coef[small] = 0.0
+                coef = self._refit(theta, y, coef, options)
+            if gram is None:
+                break
+            # Terms the errors in the variables could have selected are not identified.
+            _, new = drop_biased_terms(
+                th, yk, scaler.coef_to_standard(coef), delta_s, gram, method=method,
+                **pilot_budget(method),
+            )  # fmt: skip
+            dropped = np.isfinite(new)
+            if dropped.any():
+                ratio[dropped] = new[dropped]
+                coef[dropped] = 0.0
+                coef = self._refit(theta, y, coef, options)
+            elif not small.any():
+                break
+        return coef, ratio
 
     def _stability(self, theta_kept, y_kept) -> np.ndarray:
         """Selected terms that leaving out one block of the data changes (see Diagnostics)."""
