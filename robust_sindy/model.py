@@ -565,13 +565,12 @@ class HuberSINDy(BaseEstimator):
             raise ValueError("x: every trajectory must have the same number of states")
 
         def per_trajectory(value, name):
-            if value is None:
+            values = _as_list(value, name, multiple)
+            if values is None:
                 return [None] * len(xs)
-            if not multiple:
-                return [value]
-            if not isinstance(value, (list, tuple)) or len(value) != len(xs):
+            if len(values) != len(xs):
                 raise ValueError(f"{name} must be a list with one array per trajectory of x")
-            return list(value)
+            return values
 
         us = [None if a is None else da.asarray(a) for a in per_trajectory(u, "u")]
         us = [a[:, None] if a is not None and a.ndim == 1 else a for a in us]
@@ -814,14 +813,16 @@ class HuberSINDy(BaseEstimator):
             # the chosen support is refitted here in user units with the full one.
             coef = self._refit(theta[keep], y[keep], coef, options)
         ratio = np.full(coef.shape, np.nan)
+        delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
         if self.selection_ is not None:
-            coef, ratio = self._final_selection(theta[keep], y[keep], coef, noise, options)
+            coef, ratio = self._final_selection(
+                theta[keep], y[keep], th, yk, coef, delta_s, noise, huber_method, options
+            )
         self.bias_ratio_ = np.ascontiguousarray(ratio.T)
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
         below = np.full(coef.shape, np.nan)
         if self.selection_ is not None and self.selection_tol_ > self.selection_tol:
             # Terms left out that the raised noise floor, not the data, decided about.
-            delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
             contrib = one_step_contributions(th, yk, scaler.coef_to_standard(coef), delta_s)
             inside = (contrib >= self.selection_tol) & (contrib < self.selection_tol_)
             below[inside] = contrib[inside]
@@ -903,18 +904,18 @@ class HuberSINDy(BaseEstimator):
             **options,
         )
 
-    def _final_selection(self, theta, y, coef, noise, options):
+    def _final_selection(self, theta, y, th, yk, coef, delta_s, noise, method, options):
         """On the certified refit: drop the terms below ``selection_tol_`` and those
         within ``BIAS_MARGIN`` of their errors-in-variables bias (with the screen),
-        refitting after each, until neither drops anything.  Returns the coefficients
-        and the bias ratios of the terms the latter dropped (NaN elsewhere)."""
+        refitting after each, until neither drops anything.  ``theta``, ``y`` are the
+        kept samples in user units, ``th``, ``yk`` the same standardised, ``delta_s``
+        and ``method`` the Huber threshold (standardised) and method of the drops.
+        Returns the coefficients and the bias ratios of the terms the latter dropped
+        (NaN elsewhere)."""
         scaler = self.standardizer_
-        th, yk = scaler.theta(theta), scaler.y(y)
         col = np.linalg.norm(th, axis=0)[:, None]
         ynorm = np.maximum(np.linalg.norm(yk, axis=0), np.finfo(float).tiny)
-        delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
         gram = None if noise is None else noise_gram(noise)
-        method = self.method if self.method in ("admm", "cvxpy") else "admm"
         ratio = np.full(coef.shape, np.nan)
         for _ in range(STAGE_ROUNDS):
             small = (coef != 0) & (

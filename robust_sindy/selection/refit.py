@@ -5,6 +5,7 @@ from __future__ import annotations
 import numpy as np
 
 from .._fit import fit
+from .._losses import huber_psi
 from .._validation import check_int, check_problem
 
 __all__ = ["STAGE_ROUNDS", "one_step_contributions", "threshold_refit"]
@@ -102,7 +103,7 @@ def one_step_contributions(theta, xdot, coef, delta) -> np.ndarray:
     for k in range(y.shape[1]):
         sel = np.flatnonzero(coef[:, k])
         r = y[:, k] - theta @ coef[:, k]
-        psi = np.clip(r, -delta[k], delta[k])
+        psi = huber_psi(r, delta[k])
         w = (np.abs(r) <= delta[k]).astype(float)
         tw = theta * w[:, None]
         a = theta[:, sel]
