@@ -31,6 +31,7 @@ from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
 from .selection.screening import temporal_screen
+from .selection.significance import SIGNIFICANCE, robust_t
 from .simulate import check_time, input_function
 from .solvers.chunked import is_dask
 
@@ -54,6 +55,10 @@ STABILITY_TOLERANCE = 0.5
 #: along its least-excited direction beyond which the errors in the variables decide
 #: which terms are selected.
 MAX_LIBRARY_NOISE = 0.15
+#: BIC difference between the chosen support and the best other one on the path below
+#: which the data do not strongly prefer the chosen support (6: "strong" evidence on
+#: the scale of Kass and Raftery, 1995).
+MIN_BIC_MARGIN = 6.0
 
 
 class IdentificationWarning(UserWarning):
@@ -110,6 +115,16 @@ class Diagnostics:
         ``selection_tol`` and the noise floor ``selection_tol_`` that the library noise
         raised it to: the floor, not the data, left them out, so they may be real (a
         warning says so); NaN for every other term.
+    bic_margin : ndarray (n,)
+        Per equation, how much higher the BIC of the best other support on the path
+        scored than the chosen one (``Selection.margin``); ``inf`` when the path offers
+        no other, NaN with a fixed ``lam`` or ``criterion="cv"``.  Below
+        ``MIN_BIC_MARGIN`` the data do not strongly prefer the chosen support.
+    significance : ndarray (n, p)
+        Robust t statistic of every selected term (the coefficient over its sandwich
+        standard error, :func:`robust_sindy.selection.significance.robust_t`); NaN off
+        the support and with a fixed ``lam``.  With estimated derivatives it leaves out
+        the differentiation error, which is systematic, so it only ranks the terms.
     """
 
     n_samples: int
@@ -128,6 +143,8 @@ class Diagnostics:
     unstable: np.ndarray
     bias_ratio: np.ndarray
     below_floor: np.ndarray
+    bic_margin: np.ndarray
+    significance: np.ndarray
 
     def problems(self) -> list[str]:
         """One sentence for each reason to doubt the model (empty when there is none)."""
@@ -205,6 +222,16 @@ class Diagnostics:
                 "real (see diagnostics_.below_floor); less noisy states or a smaller "
                 "library would decide"
             )
+        close = np.flatnonzero(self.bic_margin < MIN_BIC_MARGIN)
+        if close.size:
+            margins = ", ".join(f"{v:.1f}" for v in self.bic_margin[close])
+            out.append(
+                f"equations {close.tolist()}: another support on the path scored within "
+                f"{MIN_BIC_MARGIN:g} of the chosen one's BIC (differences {margins}): the "
+                "data do not strongly prefer the selected terms; compare the candidates "
+                "(selection_.candidates, selection_.scores), and try more data or measured "
+                "derivatives"
+            )
         return out
 
     def __repr__(self) -> str:
@@ -224,6 +251,9 @@ class Diagnostics:
             f"{np.isfinite(self.bias_ratio).sum(axis=1).tolist()}",
             "  terms left out below the noise floor per equation: "
             f"{np.isfinite(self.below_floor).sum(axis=1).tolist()}",
+            f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}",
+            "  smallest robust t per equation: "
+            + np.array2string(_smallest(self.significance), precision=3),
         ]
         problems = self.problems()
         lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
@@ -296,7 +326,10 @@ class HuberSINDy(BaseEstimator):
         (``selection_tol_``) is at least the relative noise of the noisiest library
         column (the states' noise, measured by the temporal screen, carried through
         the library): a term contributing less than the noise of the columns it is
-        built from cannot be told from errors in the variables.
+        built from cannot be told from errors in the variables.  With measured
+        derivatives (``x_dot`` given), a term under that floor is kept when the data
+        vouch for it: its robust t statistic is at least
+        :data:`~robust_sindy.selection.significance.SIGNIFICANCE`.
     n_lams : int
         Points on the ``lam`` path.
     method : {"admm", "cvxpy", "stls", "ols"}
@@ -372,6 +405,8 @@ class HuberSINDy(BaseEstimator):
         Unselected terms whose contribution if added (one Newton step,
         :func:`robust_sindy.selection.refit.one_step_contributions`) lies between
         ``selection_tol`` and the noise floor ``selection_tol_``; NaN elsewhere.
+    significance_ : ndarray, shape (n_targets, n_features)
+        Robust t statistic of each selected term (see :class:`Diagnostics`).
 
     Examples
     --------
@@ -722,6 +757,7 @@ class HuberSINDy(BaseEstimator):
             self.temporal_ = temporal_screen(xs, ts)
             entry_flags = self.temporal_.flags
         # 2. Derivatives of the (repaired) states when not measured.
+        measured = ds is not None
         if ds is None:
             ds = self._derivatives(xs, ts, entry_flags)
         y = np.vstack(ds)
@@ -773,7 +809,10 @@ class HuberSINDy(BaseEstimator):
                 delta_s,
                 criterion=self.criterion,
                 n_lams=self.n_lams,
-                tol=self.selection_tol_,
+                # With measured derivatives, terms under the noise floor that the data
+                # vouch for are kept (the final selection tests them); estimated
+                # derivatives carry errors no standard error accounts for.
+                tol=self.selection_tol if measured else self.selection_tol_,
                 segments=_segments_of(keep, xs),
                 method=self.method,
                 solver=self.solver,
@@ -816,7 +855,16 @@ class HuberSINDy(BaseEstimator):
         delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
         if self.selection_ is not None:
             coef, ratio = self._final_selection(
-                theta[keep], y[keep], th, yk, coef, delta_s, noise, huber_method, options
+                theta[keep],
+                y[keep],
+                th,
+                yk,
+                coef,
+                delta_s,
+                noise,
+                huber_method,
+                options,
+                _segments_of(keep, xs) if measured else None,
             )
         self.bias_ratio_ = np.ascontiguousarray(ratio.T)
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
@@ -827,6 +875,10 @@ class HuberSINDy(BaseEstimator):
             inside = (contrib >= self.selection_tol) & (contrib < self.selection_tol_)
             below[inside] = contrib[inside]
         self.below_floor_ = np.ascontiguousarray(below.T)
+        tstat = np.full(coef.shape, np.nan)
+        if self.selection_ is not None:
+            tstat = robust_t(th, yk, scaler.coef_to_standard(coef), delta_s, _segments_of(keep, xs))
+        self.significance_ = np.ascontiguousarray(tstat.T)
         self.coef_ = np.ascontiguousarray(coef.T)
         self.support_ = self.coef_ != 0
         self.outliers_ = np.abs(y - theta @ coef) > self.delta_
@@ -904,10 +956,13 @@ class HuberSINDy(BaseEstimator):
             **options,
         )
 
-    def _final_selection(self, theta, y, th, yk, coef, delta_s, noise, method, options):
-        """On the certified refit: drop the terms below ``selection_tol_`` and those
-        within ``BIAS_MARGIN`` of their errors-in-variables bias (with the screen),
-        refitting after each, until neither drops anything.  ``theta``, ``y`` are the
+    def _final_selection(self, theta, y, th, yk, coef, delta_s, noise, method, options, segments):
+        """On the certified refit: drop the terms below ``selection_tol_`` (with
+        ``segments``, the samples of each trajectory, given for measured derivatives:
+        only those whose robust t is below ``SIGNIFICANCE`` or whose contribution is
+        below ``selection_tol``) and those within ``BIAS_MARGIN`` of their
+        errors-in-variables bias (with the screen), refitting after each, until neither
+        drops anything.  ``theta``, ``y`` are the
         kept samples in user units, ``th``, ``yk`` the same standardised, ``delta_s``
         and ``method`` the Huber threshold (standardised) and method of the drops.
         Returns the coefficients and the bias ratios of the terms the latter dropped
@@ -918,9 +973,12 @@ class HuberSINDy(BaseEstimator):
         gram = None if noise is None else noise_gram(noise)
         ratio = np.full(coef.shape, np.nan)
         for _ in range(STAGE_ROUNDS):
-            small = (coef != 0) & (
-                np.abs(scaler.coef_to_standard(coef)) * col / ynorm < self.selection_tol_
-            )
+            contrib = np.abs(scaler.coef_to_standard(coef)) * col / ynorm
+            small = (coef != 0) & (contrib < self.selection_tol_)
+            if segments is not None:
+                # Under the noise floor, a term stays only when the data vouch for it.
+                tstat = robust_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
+                small &= (contrib < self.selection_tol) | ~(tstat >= SIGNIFICANCE)
             if small.any():
                 coef[small] = 0.0
                 coef = self._refit(theta, y, coef, options)
@@ -1040,6 +1098,12 @@ class HuberSINDy(BaseEstimator):
             unstable=self._stability(theta_kept, y_kept),
             bias_ratio=self.bias_ratio_.copy(),
             below_floor=self.below_floor_.copy(),
+            bic_margin=(
+                self.selection_.margin.copy()
+                if self.selection_ is not None and self.selection_.criterion == "bic"
+                else np.full(self.coef_.shape[0], np.nan)
+            ),
+            significance=self.significance_.copy(),
         )
 
     def _warn(self, d: Diagnostics) -> None:
@@ -1184,6 +1248,13 @@ class HuberSINDy(BaseEstimator):
 
             return pd.DataFrame(out, index=pd.Index(t[: len(out)], name="t"), columns=f.state_names)
         return out
+
+
+def _smallest(values: np.ndarray) -> np.ndarray:
+    """Per row the smallest finite value (NaN for a row with none)."""
+    finite = np.isfinite(values)
+    low = np.min(np.where(finite, values, np.inf), axis=1)
+    return np.where(finite.any(axis=1), low, np.nan)
 
 
 def input_names(names, n: int, q: int) -> list[str]:

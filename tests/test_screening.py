@@ -184,3 +184,26 @@ def test_derivatives_next_to_masked_entries_keep_their_order():
     plain = np.abs(local_polynomial_derivative(x, t) - true).max()
     masked = np.abs(local_polynomial_derivative(x_bad, t, mask=mask) - true).max()
     assert masked < 5 * plain < 1e-4
+
+
+def test_the_small_cholesky_solver_matches_lapack():
+    from robust_sindy.selection.screening import _spd_solve
+
+    rng = np.random.default_rng(0)
+    a = rng.normal(size=(40, 7, 4, 6))
+    a = a @ np.swapaxes(a, -1, -2) + 1e-3 * np.eye(4)
+    b = rng.normal(size=(40, 7, 4))
+    assert np.allclose(_spd_solve(a, b), np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-8)
+
+
+def test_shared_window_inverses_give_the_general_fit():
+    # Uniform times share each window place's elemental inverses; times jittered
+    # beyond that tolerance take the general batched solve: same fit.
+    from robust_sindy.selection.screening import _lts_fitted
+
+    rng = np.random.default_rng(3)
+    t = 0.01 * np.arange(1500)
+    x = np.sin(3 * t) + 0.01 * rng.standard_t(2, size=t.size)
+    x[rng.choice(t.size, 60, replace=False)] += 1.0
+    jittered = t + 1e-7 * rng.uniform(size=t.size)
+    assert np.allclose(_lts_fitted(x, t), _lts_fitted(x, jittered), atol=1e-6)

@@ -234,3 +234,31 @@ def test_no_warning_on_clean_defaults():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot)
+
+
+def test_score_margin_is_the_gap_to_the_best_other_support():
+    from robust_sindy.selection.criteria import score_margin
+
+    cand = np.zeros((4, 3, 2))
+    cand[0, 0] = cand[1, :2] = cand[2, :2] = cand[3] = 1.0  # supports {0}, {0,1}, {0,1}, all
+    scores = np.array([[10.0, 5.0], [4.0, 5.0], [3.0, 5.0], [3.5, 5.0]])
+    index = np.array([2, 0])
+    # column 0: chosen {0,1} at 3.0; others {0} at 10, all at 3.5 -> 0.5
+    # column 1: every support scores 5 -> 0
+    assert np.allclose(score_margin(scores, cand, index), [0.5, 0.0])
+    same = np.ones((3, 3, 1))
+    assert np.isinf(score_margin(np.zeros((3, 1)), same, np.array([0])))[0]
+
+
+def test_a_close_runner_up_support_is_reported():
+    import dataclasses
+
+    from robust_sindy.systems import Lorenz
+
+    data = Lorenz().generate(t_end=5.0)
+    model = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot)
+    d = model.diagnostics_
+    assert np.all(d.bic_margin >= 6.0) and d.problems() == []
+    assert np.allclose(d.bic_margin, model.selection_.margin)
+    (message,) = dataclasses.replace(d, bic_margin=np.array([40.0, 2.5, np.inf])).problems()
+    assert message.startswith("equations [1]: another support") and "2.5" in message

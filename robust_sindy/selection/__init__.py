@@ -15,7 +15,12 @@
   contribution, refit the rest by Huber with ``lam = 0``, until the support is stable.
 * :func:`select` — runs the path, the selection stage at every point, and picks
   ``lam`` per equation by a robust BIC (:func:`information_criterion`) or by blocked
-  cross-validation (:func:`blocked_folds`) scored with the Huber loss.
+  cross-validation (:func:`blocked_folds`) scored with the Huber loss;
+  :func:`score_margin` is how much worse the best other support scored.
+* :func:`robust_t` — the robust t statistic of selected terms (sandwich standard
+  errors from the residuals, corrected for their correlation time): with measured
+  derivatives, a term under the noise floor stays when it reaches
+  :data:`SIGNIFICANCE`.
 
 Examples
 --------
@@ -36,17 +41,20 @@ from .criteria import (
     blocked_folds,
     correlation_time,
     information_criterion,
+    score_margin,
     select,
 )
 from .path import PATH_MAX_ITER, Path, lambda_max, path
 from .refit import STAGE_ROUNDS, threshold_refit
 from .scale import HUBER_EFFICIENCY_CONSTANT, auto_delta, robust_scale
 from .screening import Screening, screen_rows
+from .significance import SIGNIFICANCE, robust_t
 
 __all__ = [
     "CRITERIA",
     "HUBER_EFFICIENCY_CONSTANT",
     "PATH_MAX_ITER",
+    "SIGNIFICANCE",
     "STAGE_ROUNDS",
     "Path",
     "Screening",
@@ -58,6 +66,8 @@ __all__ = [
     "lambda_max",
     "path",
     "robust_scale",
+    "robust_t",
+    "score_margin",
     "screen_rows",
     "select",
     "threshold_refit",

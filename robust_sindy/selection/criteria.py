@@ -121,6 +121,11 @@ class Selection:
     support : ndarray of bool, shape (p, n)
     path : Path
     criterion : str
+    margin : ndarray, shape (n,)
+        Per column, how much worse the best candidate with another support scored than
+        the chosen one (:func:`score_margin`; ``inf`` when every point has the same
+        support).  For ``criterion="bic"`` it is a BIC difference: below about 6 the
+        data do not strongly prefer the chosen support.
     """
 
     coef: np.ndarray
@@ -132,6 +137,7 @@ class Selection:
     support: np.ndarray
     path: Path
     criterion: str
+    margin: np.ndarray
 
     def __repr__(self) -> str:
         return (
@@ -157,6 +163,25 @@ def _stage_all(theta, y, path_coef, delta, tol, method, solver, options):
             out[i, :, k] = _select_column(
                 path_coef[i, :, k], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache
             )
+    return out
+
+
+def score_margin(scores, candidates, index) -> np.ndarray:
+    """Per column, the score of the best candidate whose support differs from the
+    chosen one (``index``) minus the chosen score; ``inf`` when none differs.
+
+    ``scores`` (L, n), ``candidates`` (L, p, n), ``index`` (n,).
+    """
+    L, _, n = candidates.shape
+    out = np.full(n, np.inf)
+    for k in range(n):
+        chosen = candidates[index[k], :, k] != 0
+        other = [
+            i for i in range(L)
+            if np.isfinite(scores[i, k]) and not np.array_equal(candidates[i, :, k] != 0, chosen)
+        ]  # fmt: skip
+        if other:
+            out[k] = np.min(scores[other, k]) - scores[index[k], k]
     return out
 
 
@@ -323,4 +348,5 @@ def select(
         support=coef != 0,
         path=full,
         criterion=criterion,
+        margin=score_margin(scores, candidates, index),
     )

@@ -197,6 +197,28 @@ def _elemental_subsets(w: int, size: int, count: int) -> np.ndarray:
     return np.array(sorted(out))
 
 
+def _spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """Solve the symmetric positive definite systems ``a x = b`` (..., n, n), (..., n)
+    by a Cholesky factorisation written out over the (small) ``n``: vectorised across
+    the many systems, without a LAPACK call for each."""
+    n = a.shape[-1]
+    a = np.moveaxis(a, (-2, -1), (0, 1))  # (n, n, ...)
+    b = np.moveaxis(b, -1, 0)
+    low = [[None] * n for _ in range(n)]
+    for j in range(n):
+        diag = a[j, j] - sum(low[j][k] ** 2 for k in range(j))
+        low[j][j] = np.sqrt(np.maximum(diag, np.finfo(float).tiny))
+        for i in range(j + 1, n):
+            low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
+    z = [None] * n
+    for i in range(n):
+        z[i] = (b[i] - sum(low[i][k] * z[k] for k in range(i))) / low[i][i]
+    out = [None] * n
+    for i in reversed(range(n)):
+        out[i] = (z[i] - sum(low[k][i] * out[k] for k in range(i + 1, n))) / low[i][i]
+    return np.stack(out, axis=-1)
+
+
 def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
     """Fitted value at every sample of ``x`` (m,) by a least-trimmed-squares polynomial
     in its window of ``2 _LTS_HALF + 1`` samples (shifted inside at the ends).
@@ -220,9 +242,23 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
         tau = tau / np.where(span > 0, span, 1.0)  # relative time: unit-free
         v = tau[..., None] ** np.arange(d + 1)  # (b, w, d+1)
         xw = x[idx]  # (b, w)
-        vs = v[:, subsets]  # (b, K, d+1, d+1)
-        coef = np.linalg.solve(vs + eye, xw[:, subsets][..., None])[..., 0]
+        # Elemental fits: in uniformly sampled windows the relative times depend only on
+        # the sample's place in its window, so each place's interpolation matrices are
+        # inverted once.
+        place = i - first
+        pattern = np.zeros((w, w))
+        pattern[place] = tau  # one window per place (any: they agree when uniform)
+        if np.abs(tau - pattern[place]).max() <= 1e-9:
+            vp = pattern[..., None] ** np.arange(d + 1)
+            inverse = np.linalg.inv(vp[:, subsets] + eye)  # (w, K, d+1, d+1)
+            coef = np.einsum("bkij,bkj->bki", inverse[place], xw[:, subsets])
+        else:
+            coef = np.linalg.solve(v[:, subsets] + eye, xw[:, subsets][..., None])[..., 0]
         vt = np.swapaxes(v, 1, 2)  # (b, d+1, w)
+        # Outer products of the rows and the rows times the data, so that each
+        # concentration step's normal equations are one product per window.
+        outer = (v[..., :, None] * v[..., None, :]).reshape(i.size, w, -1)  # (b, w, a*a)
+        vx = v * xw[..., None]  # (b, w, a)
         for step in range(_LTS_STEPS):
             r2 = (xw[:, None, :] - coef @ vt) ** 2  # (b, K, w)
             smallest = np.partition(r2, q - 1, axis=-1)
@@ -232,8 +268,9 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
                 r2 = np.take_along_axis(r2, best[..., None], axis=1)
                 smallest = np.take_along_axis(smallest, best[..., None], axis=1)
             # The q samples with the smallest residuals (a tie admits one more).
-            vm = vt[:, None] * (r2 <= smallest[..., q - 1 : q])[:, :, None, :]  # (b, K, a, w)
-            coef = np.linalg.solve(vm @ v[:, None] + eye, vm @ xw[:, None, :, None])[..., 0]
+            mask = (r2 <= smallest[..., q - 1 : q]).astype(float)  # (b, K, w)
+            normal = (mask @ outer).reshape(*mask.shape[:2], d + 1, d + 1)
+            coef = _spd_solve(normal + eye, mask @ vx)
         r = xw[:, None, :] - coef @ vt
         obj = np.partition(r**2, q - 1, axis=-1)[..., :q].sum(-1)
         c = coef[np.arange(i.size), np.argmin(obj, axis=1)]

@@ -1,0 +1,131 @@
+"""Robust significance of the selected terms and the terms it keeps under the noise floor."""
+
+import warnings
+
+import numpy as np
+import scipy.integrate
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+from robust_sindy import HuberSINDy, PolynomialLibrary, fit
+from robust_sindy.selection.significance import SIGNIFICANCE, robust_t
+
+
+def _regression(seed, m=600, ar=0.0, scale=0.5):
+    rng = np.random.default_rng(seed)
+    theta = rng.normal(size=(m, 4)) + np.array([1.0, 0.0, 0.0, 0.0])
+    coef = np.array([2.0, -1.0, 0.0, 0.3])
+    e = rng.normal(size=m)
+    for i in range(1, m):  # AR(1) noise when ar > 0
+        e[i] += ar * e[i - 1]
+    return theta, theta @ coef + scale * e, coef
+
+
+def test_with_a_large_delta_it_is_the_least_squares_sandwich_t():
+    theta, y, _ = _regression(0)
+    coef = np.linalg.lstsq(theta, y, rcond=None)[0]
+    r = y - theta @ coef
+    hinv = np.linalg.inv(theta.T @ theta)
+    se = np.sqrt(np.diag(hinv @ (theta * r[:, None] ** 2).T @ theta @ hinv))
+    t = robust_t(theta, y[:, None], coef[:, None], 1e6)[:, 0]
+    # tau is at least 1 and about 1 for independent noise
+    assert np.allclose(t, np.abs(coef) / se, rtol=0.1)
+    assert np.all(t <= np.abs(coef) / se * (1 + 1e-9))
+
+
+def test_a_null_term_is_rarely_significant_and_true_terms_are():
+    big = []
+    for seed in range(200):
+        theta, y, _ = _regression(seed)
+        coef = fit(theta, y, "admm", 1.345 * 0.5, 0.0).coef  # the Huber estimate
+        t = robust_t(theta, y, coef, 1.345 * 0.5)
+        assert np.all(t[[0, 1, 3]] > SIGNIFICANCE)
+        big.append(t[2] > 1.96)
+    # |t| > 1.96 about 5 % of the time for a coefficient whose true value is 0
+    assert 0.02 <= np.mean(big) <= 0.09
+
+
+def test_correlated_residuals_lower_the_statistic():
+    theta, y, _ = _regression(1, m=2000, ar=0.9)
+    coef = np.linalg.lstsq(theta, y, rcond=None)[0][:, None]
+    as_series = robust_t(theta, y, coef, 1.0, segments=[slice(0, 2000)])
+    shuffled = np.random.default_rng(0).permutation(2000)
+    independent = robust_t(theta[shuffled], y[shuffled], coef, 1.0)
+    assert np.all(as_series < 0.6 * independent)
+
+
+def test_off_the_support_nan_and_rank_deficient_zero():
+    theta, y, _ = _regression(2)
+    coef = np.array([[2.0], [-1.0], [0.0], [0.3]])
+    t = robust_t(theta, y[:, None], coef, 1.0)
+    assert np.isnan(t[2, 0]) and np.isfinite(t[[0, 1, 3], 0]).all()
+    theta[:, 3] = theta[:, 1]
+    assert np.all(robust_t(theta, y[:, None], coef, 1.0)[[0, 1, 3], 0] == 0.0)
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.lists(st.floats(-3, 3), min_size=4, max_size=4),
+    st.floats(-3, 3),
+    st.integers(0, 10),
+)
+def test_the_statistic_is_unit_free(log_cols, log_y, seed):
+    theta, y, _ = _regression(seed)
+    coef = np.linalg.lstsq(theta, y, rcond=None)[0]
+    c, s = 10.0 ** np.array(log_cols), 10.0**log_y
+    t = robust_t(theta, y, coef, 0.7)
+    t_scaled = robust_t(theta * c, s * y, s * coef / c, 0.7 * s)
+    assert np.allclose(t, t_scaled, rtol=1e-6, equal_nan=True)
+
+
+def _rossler(seed):
+    def rhs(_t, v):
+        x, y, z = v
+        return [-y - z, x + 0.2 * y, 0.2 + z * (x - 5.7)]
+
+    t = np.arange(3000) * 0.02
+    sol = scipy.integrate.solve_ivp(
+        rhs, (0, 100 + t[-1]), [1.0, 1.0, 0.0], t_eval=100 + t, rtol=1e-10, atol=1e-10
+    )
+    x = sol.y.T
+    x_dot = np.array([rhs(0, v) for v in x])
+    rng = np.random.default_rng(seed)
+    noisy = x + 0.01 * x.std(axis=0) * rng.standard_t(2, size=x.shape)
+    return t, noisy, x_dot
+
+
+def test_a_small_true_term_under_the_noise_floor_is_kept_when_significant():
+    # Rossler's constant 0.2 in (z)' contributes less than the noise floor that
+    # heavy-tailed state noise raises; with measured derivatives the data vouch for it.
+    t, x, x_dot = _rossler(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t, x_dot=x_dot)
+    true = np.zeros((3, 10), dtype=bool)
+    true[0, [2, 3]] = true[1, [1, 2]] = true[2, [0, 3, 6]] = True
+    assert np.array_equal(model.support_, true)
+    th = model.standardizer_.theta(model.library_.transform(x))[~model.screened_]
+    yk = model.standardizer_.y(x_dot)[~model.screened_]
+    coef = model.standardizer_.coef_to_standard(model.coef_.T)
+    contribution = abs(coef[0, 2]) * np.linalg.norm(th[:, 0]) / np.linalg.norm(yk[:, 2])
+    assert contribution < model.selection_tol_  # the floor alone would drop it
+    assert model.significance_[2, 0] >= SIGNIFICANCE
+    assert np.array_equal(np.isfinite(model.significance_), model.support_)
+    assert np.array_equal(np.isfinite(model.diagnostics_.significance), model.support_)
+
+
+def test_estimated_derivatives_keep_the_noise_floor():
+    # Without measured derivatives the floor decides alone: every selected term
+    # contributes at least selection_tol_ to the derivatives the model estimated.
+    t, x, _ = _rossler(0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t)
+    keep = ~model.screened_
+    (y,) = model._derivatives([x], [t], model.temporal_.flags)
+    th = model.standardizer_.theta(model.library_.transform(x))[keep]
+    yk = model.standardizer_.y(y)[keep]
+    coef = model.standardizer_.coef_to_standard(model.coef_.T)
+    contribution = np.abs(coef) * np.linalg.norm(th, axis=0)[:, None] / np.linalg.norm(yk, axis=0)
+    assert model.selection_tol_ > model.selection_tol
+    assert np.all(contribution[coef != 0] >= model.selection_tol_)
