@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .library import BaseLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
+from .selection.significance import SIGNIFICANCE
 
 __all__ = ["FitJob", "parse_library", "read_table", "run"]
 
@@ -364,6 +365,10 @@ def _summary(model, job, source: str, messages) -> list[str]:
     for label, mask in (
         ("dropped as errors-in-variables bias", model.bias_dropped_),
         ("left out below the noise floor", np.isfinite(model.below_floor_)),
+        (
+            f"selected, robust t below {SIGNIFICANCE:g}",
+            np.nan_to_num(model.significance_, nan=np.inf) < SIGNIFICANCE,
+        ),
     ):
         for state, row in zip(job.states, mask, strict=True):
             if row.any():

@@ -124,7 +124,9 @@ class Diagnostics:
         Robust t statistic of every selected term (the coefficient over its sandwich
         standard error, :func:`robust_sindy.selection.significance.robust_t`); NaN off
         the support and with a fixed ``lam``.  With estimated derivatives it leaves out
-        the differentiation error, which is systematic, so it only ranks the terms.
+        the differentiation error, which is systematic, so it overstates how sure the
+        data are.  A selected term below ``SIGNIFICANCE`` is not vouched for by the data
+        (a warning says so).
     """
 
     n_samples: int
@@ -221,6 +223,18 @@ class Diagnostics:
                 "(selection_tol_): the noise, not the data, decided them, and they may be "
                 "real (see diagnostics_.below_floor); less noisy states or a smaller "
                 "library would decide"
+            )
+        weak = np.nan_to_num(self.significance, nan=np.inf) < SIGNIFICANCE
+        rows = np.flatnonzero(weak.any(axis=1))
+        if rows.size:
+            counts = ", ".join(str(int(c)) for c in weak[rows].sum(axis=1))
+            low = ", ".join(f"{v:.2g}" for v in _smallest(self.significance)[rows])
+            out.append(
+                f"equations {rows.tolist()}: {counts} selected terms are within "
+                f"{SIGNIFICANCE:g} standard errors of zero (smallest robust t {low}): the "
+                "data do not vouch for them (with estimated derivatives the statistic "
+                "leaves out their error, so they are weaker still); see "
+                "diagnostics_.significance, and try more data or measured derivatives"
             )
         close = np.flatnonzero(self.bic_margin < MIN_BIC_MARGIN)
         if close.size:

@@ -129,3 +129,19 @@ def test_estimated_derivatives_keep_the_noise_floor():
     contribution = np.abs(coef) * np.linalg.norm(th, axis=0)[:, None] / np.linalg.norm(yk, axis=0)
     assert model.selection_tol_ > model.selection_tol
     assert np.all(contribution[coef != 0] >= model.selection_tol_)
+
+
+def test_a_selected_term_the_data_do_not_vouch_for_is_reported():
+    import dataclasses
+
+    from robust_sindy.systems import Lorenz
+
+    data = Lorenz().generate(t_end=5.0)
+    model = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot)
+    d = model.diagnostics_
+    assert np.all(d.significance[model.support_] >= SIGNIFICANCE) and d.problems() == []
+    t = d.significance.copy()
+    t[2, np.flatnonzero(model.support_[2])[0]] = 2.5
+    (message,) = dataclasses.replace(d, significance=t).problems()
+    assert message.startswith("equations [2]: 1 selected terms are within 5 standard errors")
+    assert "2.5" in message
