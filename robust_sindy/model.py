@@ -106,7 +106,7 @@ class Diagnostics:
         For terms the selection chose but then dropped because their coefficient was
         within ``BIAS_MARGIN`` times the bias that the noise of the states, through the
         other selected terms, could give it (errors in the variables, see
-        :mod:`robust_sindy.selection.bias`): the coefficient over that bias bound when
+        :mod:`robust_sindy.selection.bias`): the coefficient over that first-order bias when
         dropped; NaN for every other term (all NaN without the temporal screen or with a
         fixed ``lam``).  A ratio of at least 1 is a term that the bias alone does not
         explain, dropped only for want of margin: it may be real, and a warning says so.
@@ -414,7 +414,7 @@ class HuberSINDy(BaseEstimator):
     bias_dropped_ : ndarray of bool, shape (n_targets, n_features)
         Terms dropped by step 4.
     bias_ratio_ : ndarray, shape (n_targets, n_features)
-        Their coefficient over their bias bound when dropped (NaN elsewhere).
+        Their coefficient over their first-order bias when dropped (NaN elsewhere).
     below_floor_ : ndarray, shape (n_targets, n_features)
         Unselected terms whose contribution if added (one Newton step,
         :func:`robust_sindy.selection.refit.one_step_contributions`) lies between
@@ -975,8 +975,9 @@ class HuberSINDy(BaseEstimator):
         ``segments``, the samples of each trajectory, given for measured derivatives:
         only those whose robust t is below ``SIGNIFICANCE`` or whose contribution is
         below ``selection_tol``) and those within ``BIAS_MARGIN`` of their
-        errors-in-variables bias (with the screen), refitting after each, until neither
-        drops anything.  ``theta``, ``y`` are the
+        errors-in-variables bias (with the screen; the signed first-order bias for
+        measured derivatives, its triangle bound for estimated ones), refitting after
+        each, until neither drops anything.  ``theta``, ``y`` are the
         kept samples in user units, ``th``, ``yk`` the same standardised, ``delta_s``
         and ``method`` the Huber threshold (standardised) and method of the drops.
         Returns the coefficients and the bias ratios of the terms the latter dropped
@@ -1000,8 +1001,8 @@ class HuberSINDy(BaseEstimator):
                 break
             # Terms the errors in the variables could have selected are not identified.
             _, new = drop_biased_terms(
-                th, yk, scaler.coef_to_standard(coef), delta_s, gram, method=method,
-                **pilot_budget(method),
+                th, yk, scaler.coef_to_standard(coef), delta_s, gram,
+                signed=segments is not None, method=method, **pilot_budget(method),
             )  # fmt: skip
             dropped = np.isfinite(new)
             if dropped.any():

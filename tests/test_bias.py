@@ -1,13 +1,14 @@
-"""Errors in the variables: the bias bound and the terms it drops."""
+"""Errors in the variables: the first-order bias and the terms it drops."""
 
 import warnings
 
 import numpy as np
+import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robust_sindy import HuberSINDy, PolynomialLibrary
-from robust_sindy.selection.bias import BIAS_MARGIN, bias_bound, drop_biased_terms, noise_gram
+from robust_sindy.selection.bias import BIAS_MARGIN, drop_biased_terms, first_order_bias, noise_gram
 from robust_sindy.systems import Lorenz
 
 
@@ -24,18 +25,21 @@ def test_the_gram_of_noise_columns_is_the_sum_of_their_grams():
     assert np.allclose(noise_gram(noise), noise[0].T @ noise[0] + noise[1].T @ noise[1])
 
 
-def test_bias_bound_is_the_absolute_first_order_bias_on_the_support():
+def test_the_bias_is_the_absolute_first_order_bias_on_the_support():
     theta, coef, noise = _problem()
     gram = noise_gram(noise)
-    beta = bias_bound(theta, coef, gram)
+    beta = first_order_bias(theta, coef, gram)
     sel = np.flatnonzero(coef)
     a = theta[:, sel]
     m = np.linalg.solve(a.T @ a, gram[np.ix_(sel, sel)])
-    assert np.allclose(beta[sel], np.abs(m) @ np.abs(coef[sel]))
+    assert np.allclose(beta[sel], np.abs(m @ coef[sel]))
+    bound = first_order_bias(theta, coef, gram, signed=False)
+    assert np.allclose(bound[sel], np.abs(m) @ np.abs(coef[sel]))
+    assert np.all(beta <= bound + 1e-15)
     assert np.all(beta[coef == 0] == 0)
     # rank-deficient selected columns: nothing can be vouched for
     theta[:, 2] = theta[:, 0]
-    assert np.all(np.isinf(bias_bound(theta, coef, gram)[sel]))
+    assert np.all(np.isinf(first_order_bias(theta, coef, gram)[sel]))
 
 
 @settings(max_examples=40, deadline=None)
@@ -47,10 +51,10 @@ def test_bias_bound_is_the_absolute_first_order_bias_on_the_support():
 def test_the_ratio_to_the_bound_is_unit_free(log_cols, log_y, seed):
     theta, coef, noise = _problem(seed)
     with np.errstate(invalid="ignore"):
-        ratio = np.abs(coef) / bias_bound(theta, coef, noise_gram(noise))
+        ratio = np.abs(coef) / first_order_bias(theta, coef, noise_gram(noise))
     d = 10.0 ** np.array(log_cols)
     # columns in other units: coefficients scale by 1/d (and by the target's unit)
-    scaled = bias_bound(theta * d, coef / d * 10.0**log_y, noise_gram([a * d for a in noise]))
+    scaled = first_order_bias(theta * d, coef / d * 10.0**log_y, noise_gram([a * d for a in noise]))
     with np.errstate(invalid="ignore"):
         ratio_scaled = np.abs(coef / d * 10.0**log_y) / scaled
     sel = coef != 0
@@ -66,7 +70,7 @@ def test_only_terms_within_the_margin_of_their_bias_are_dropped():
     start = np.zeros(5)
     start[coef != 0] = fitted
     with np.errstate(invalid="ignore"):
-        ratio = np.abs(start) / bias_bound(theta, start, gram)
+        ratio = np.abs(start) / first_order_bias(theta, start, gram)
     assert ratio[3] < BIAS_MARGIN <= min(ratio[0], ratio[2])  # the small term is within
     new, ratios = drop_biased_terms(theta, y[:, None], start[:, None], 1.0, gram)
     assert np.isfinite(ratios[:, 0]).tolist() == [False, False, False, True, False]
@@ -132,3 +136,22 @@ def test_one_step_contributions_are_exact_for_least_squares_and_close_for_huber(
             full = fit(theta[:, [0, 2, j]], y, delta=delta, lam=0.0).coef.ravel()[2]
             exact = abs(full) * np.linalg.norm(theta[:, j]) / np.linalg.norm(y)
             assert np.isclose(steps[j], exact, rtol=rtol, atol=1e-4 * rtol), (delta, j)
+
+
+def test_biases_of_opposite_signs_cancel_and_the_bound_ignores_it():
+    # Orthonormal columns, so M is the noise Gram itself: term 2 gets a * xi_0 from
+    # term 0 and -a * xi_1 from term 1, which cancel when xi_0 = xi_1.
+    rng = np.random.default_rng(0)
+    theta = np.linalg.qr(rng.normal(size=(300, 3)))[0]
+    coef = np.array([5.0, 5.0, 0.1])
+    a = 0.01
+    gram = np.zeros((3, 3))
+    gram[2, 0], gram[2, 1] = a, -a
+    gram[0, 2], gram[1, 2] = a, -a
+    y = (theta @ coef)[:, None]
+    assert first_order_bias(theta, coef, gram)[2] == pytest.approx(0.0, abs=1e-15)
+    assert first_order_bias(theta, coef, gram, signed=False)[2] == pytest.approx(10 * a)
+    kept, none = drop_biased_terms(theta, y, coef[:, None], 1.0, gram)
+    assert np.all(kept[:, 0] != 0) and np.isnan(none).all()
+    dropped, ratio = drop_biased_terms(theta, y, coef[:, None], 1.0, gram, signed=False)
+    assert dropped[2, 0] == 0 and ratio[2, 0] == pytest.approx(1.0)
