@@ -365,10 +365,7 @@ def _summary(model, job, source: str, messages) -> list[str]:
     for label, mask in (
         ("dropped as errors-in-variables bias", model.bias_dropped_),
         ("left out below the noise floor", np.isfinite(model.below_floor_)),
-        (
-            f"selected, robust t below {SIGNIFICANCE:g}",
-            np.nan_to_num(model.significance_, nan=np.inf) < SIGNIFICANCE,
-        ),
+        (f"selected, robust t below {SIGNIFICANCE:g}", d.weak),
     ):
         for state, row in zip(job.states, mask, strict=True):
             if row.any():

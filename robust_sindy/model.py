@@ -148,6 +148,11 @@ class Diagnostics:
     bic_margin: np.ndarray
     significance: np.ndarray
 
+    @property
+    def weak(self) -> np.ndarray:
+        """Selected terms within ``SIGNIFICANCE`` robust standard errors of zero (n, p)."""
+        return np.nan_to_num(self.significance, nan=np.inf) < SIGNIFICANCE
+
     def problems(self) -> list[str]:
         """One sentence for each reason to doubt the model (empty when there is none)."""
         out = []
@@ -190,9 +195,8 @@ class Diagnostics:
                 "the support and coefficients may be wrong. Use less noisy states, a longer "
                 "or more exciting trajectory, or a smaller library"
             )
-        shaky = np.flatnonzero(self.unstable.any(axis=1))
+        shaky, counts = _equations_with(self.unstable)
         if shaky.size:
-            counts = ", ".join(str(int(c)) for c in self.unstable[shaky].sum(axis=1))
             out.append(
                 f"equations {shaky.tolist()}: {counts} selected terms change sign or by more "
                 f"than {100 * STABILITY_TOLERANCE:.0f} % when a quarter of the data is left "
@@ -201,11 +205,8 @@ class Diagnostics:
                 "diagnostics_.unstable, and try more data, measured derivatives or a "
                 "smaller library"
             )
-        doubtful = np.flatnonzero((np.nan_to_num(self.bias_ratio) >= 1.0).any(axis=1))
+        doubtful, counts = _equations_with(np.nan_to_num(self.bias_ratio) >= 1.0)
         if doubtful.size:
-            counts = ", ".join(
-                str(int(c)) for c in (np.nan_to_num(self.bias_ratio[doubtful]) >= 1.0).sum(axis=1)
-            )
             out.append(
                 f"equations {doubtful.tolist()}: {counts} terms were dropped because they lie "
                 f"within {BIAS_MARGIN:g} times the bias that the noise of the states gives "
@@ -214,9 +215,8 @@ class Diagnostics:
                 "diagnostics_.bias_ratio); less noisy states, a longer trajectory or a "
                 "smaller library would"
             )
-        floor = np.flatnonzero(np.isfinite(self.below_floor).any(axis=1))
+        floor, counts = _equations_with(np.isfinite(self.below_floor))
         if floor.size:
-            counts = ", ".join(str(int(c)) for c in np.isfinite(self.below_floor[floor]).sum(1))
             out.append(
                 f"equations {floor.tolist()}: {counts} terms left out would contribute more "
                 "than selection_tol but less than the noise of the library columns "
@@ -224,10 +224,8 @@ class Diagnostics:
                 "real (see diagnostics_.below_floor); less noisy states or a smaller "
                 "library would decide"
             )
-        weak = np.nan_to_num(self.significance, nan=np.inf) < SIGNIFICANCE
-        rows = np.flatnonzero(weak.any(axis=1))
+        rows, counts = _equations_with(self.weak)
         if rows.size:
-            counts = ", ".join(str(int(c)) for c in weak[rows].sum(axis=1))
             low = ", ".join(f"{v:.2g}" for v in _smallest(self.significance)[rows])
             out.append(
                 f"equations {rows.tolist()}: {counts} selected terms are within "
@@ -988,11 +986,12 @@ class HuberSINDy(BaseEstimator):
         gram = None if noise is None else noise_gram(noise)
         ratio = np.full(coef.shape, np.nan)
         for _ in range(STAGE_ROUNDS):
-            contrib = np.abs(scaler.coef_to_standard(coef)) * col / ynorm
+            standard = scaler.coef_to_standard(coef)
+            contrib = np.abs(standard) * col / ynorm
             small = (coef != 0) & (contrib < self.selection_tol_)
             if segments is not None:
                 # Under the noise floor, a term stays only when the data vouch for it.
-                tstat = robust_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
+                tstat = robust_t(th, yk, standard, delta_s, segments)
                 small &= (contrib < self.selection_tol) | ~(tstat >= SIGNIFICANCE)
             if small.any():
                 coef[small] = 0.0
@@ -1263,6 +1262,12 @@ class HuberSINDy(BaseEstimator):
 
             return pd.DataFrame(out, index=pd.Index(t[: len(out)], name="t"), columns=f.state_names)
         return out
+
+
+def _equations_with(mask: np.ndarray) -> tuple[np.ndarray, str]:
+    """The equations (rows of ``mask``, (n, p)) with any term set, and how many each has."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    return rows, ", ".join(str(int(c)) for c in mask[rows].sum(axis=1))
 
 
 def _smallest(values: np.ndarray) -> np.ndarray:
