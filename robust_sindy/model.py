@@ -27,6 +27,7 @@ from ._validation import as_float_array, per_column
 from .differentiation import finite_difference, local_polynomial_derivative, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
+from .selection.aliasing import aliased_columns
 from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
@@ -127,6 +128,12 @@ class Diagnostics:
         the differentiation error, which is systematic, so it overstates how sure the
         data are.  A selected term below ``SIGNIFICANCE`` is not vouched for by the data
         (a warning says so).
+    aliased : list of str
+        Library terms left out of the selection because they are exact linear
+        combinations of earlier terms on the kept samples (a state that does not move,
+        an exactly conserved quantity:
+        :func:`robust_sindy.selection.aliasing.aliased_columns`); an equation written
+        with them fits equally well, so a warning names them.
     """
 
     n_samples: int
@@ -147,6 +154,7 @@ class Diagnostics:
     below_floor: np.ndarray
     bic_margin: np.ndarray
     significance: np.ndarray
+    aliased: list[str]
 
     @property
     def weak(self) -> np.ndarray:
@@ -171,6 +179,14 @@ class Diagnostics:
                 f"{100 * self.flagged_fraction:.0f} % of the samples were flagged as "
                 "outliers: either the data are mostly corrupted or the library cannot "
                 "describe them; check the library and the data (screened_)"
+            )
+        if self.aliased:
+            out.append(
+                f"the library terms {', '.join(self.aliased)} are exact linear combinations "
+                "of earlier terms on these data (a state that does not move, or an exactly "
+                "conserved quantity): they were left out of the selection, and the data "
+                "cannot tell an equation written with them from the one found; see "
+                "diagnostics_.aliased, and vary that state if its terms matter"
             )
         if not self.certified.all():
             out.append(
@@ -266,6 +282,7 @@ class Diagnostics:
             f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}",
             "  smallest robust t per equation: "
             + np.array2string(_smallest(self.significance), precision=3),
+            f"  aliased terms left out: {', '.join(self.aliased) or 'none'}",
         ]
         problems = self.problems()
         lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
@@ -419,6 +436,9 @@ class HuberSINDy(BaseEstimator):
         ``selection_tol`` and the noise floor ``selection_tol_``; NaN elsewhere.
     significance_ : ndarray, shape (n_targets, n_features)
         Robust t statistic of each selected term (see :class:`Diagnostics`).
+    aliased_ : ndarray of bool, shape (n_features,)
+        Library terms left out of the selection as exact linear combinations of earlier
+        ones on the kept samples (``lam="auto"`` only; see :class:`Diagnostics`).
 
     Examples
     --------
@@ -794,14 +814,23 @@ class HuberSINDy(BaseEstimator):
             keep = ~self.screening_.outliers
         self.screened_ = ~keep
         th, yk = th_s[keep], y_s[keep]
+        # Terms that are exact combinations of earlier ones on these samples (a state
+        # that does not move) cannot be told apart by any data: the selection sees only
+        # the first of each group.
+        self.aliased_ = np.zeros(p, dtype=bool)
+        if _is_auto(self.lam):
+            self.aliased_ = aliased_columns(th)
+            if self.aliased_.any():
+                th = th.copy()
+                th[:, self.aliased_] = 0.0
         # A term that contributes less than the noise of the library columns themselves
         # cannot be told from errors in the variables: the selection stage's threshold
         # is at least the relative noise of the noisiest column.
         noise = self._noise_columns(z, keep)
         self.library_noise_ = self._library_noise(noise, th)
-        column_noise = self.library_noise_[0]
+        column_noise = self.library_noise_[0][~self.aliased_]
         self.selection_tol_ = float(
-            max(self.selection_tol, np.max(column_noise))
+            max(self.selection_tol, np.max(column_noise, initial=0.0))
             if np.all(np.isfinite(column_noise))
             else self.selection_tol
         )
@@ -1118,6 +1147,7 @@ class HuberSINDy(BaseEstimator):
                 else np.full(self.coef_.shape[0], np.nan)
             ),
             significance=self.significance_.copy(),
+            aliased=[self.get_feature_names()[j] for j in np.flatnonzero(self.aliased_)],
         )
 
     def _warn(self, d: Diagnostics) -> None:

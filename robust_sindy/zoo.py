@@ -192,8 +192,10 @@ def contaminate_family(x: np.ndarray, family: str, rng: np.random.Generator):
     return noisy, bad
 
 
-def _fit_method(method, system, t, x, x_dot):
-    """Coefficients (p, n) found by ``method`` (``x_dot`` None: from the states)."""
+def _fit_method(method, system, t, x, x_dot, seed=0):
+    """Coefficients (p, n) found by ``method`` (``x_dot`` None: from the states);
+    ``seed`` seeds the draws of PySINDy's ensembles, which use NumPy's global random
+    state (restored afterwards), so that every run of a case gives the same result."""
     from .library import PolynomialLibrary
     from .model import HuberSINDy
 
@@ -216,9 +218,14 @@ def _fit_method(method, system, t, x, x_dot):
         optimizer=optimizers[method](),
         feature_library=ps.PolynomialLibrary(degree=system.degree),
     )
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        model.fit(x, t=t, x_dot=x_dot)
+    state = np.random.get_state()  # noqa: NPY002 (the legacy state PySINDy draws from)
+    np.random.seed(seed)  # noqa: NPY002 (the legacy state PySINDy draws from)
+    try:
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model.fit(x, t=t, x_dot=x_dot)
+    finally:
+        np.random.set_state(state)  # noqa: NPY002 (the legacy state PySINDy draws from)
     coef = np.asarray(model.coefficients()).T
     return coef, []
 
@@ -236,12 +243,13 @@ def run_case(
     t, x, dx = simulate_system(system, n_samples, seed)
     noisy, bad = contaminate_family(x, family, rng)
     x_dot = dx if derivatives == "exact" else None
+    peer_seed = int(rng.integers(2**31))
     true = system.coef
     rows = []
     for method in methods:
         t0 = time.perf_counter()
         try:
-            coef, warned = _fit_method(method, system, t, noisy, x_dot)
+            coef, warned = _fit_method(method, system, t, noisy, x_dot, peer_seed)
             error = ""
         except Exception as exc:  # a peer that fails counts as a miss, with its reason
             coef, warned, error = np.full_like(true, np.nan), [], f"{type(exc).__name__}: {exc}"

@@ -11,6 +11,8 @@
   ``delta`` can down-weight).
 * :func:`path` — a warm-started decreasing ``lam`` grid from :func:`lambda_max`, one
   factorisation for the whole path, every point certified.
+* :func:`aliased_columns` — library columns that are exact linear combinations of
+  earlier ones on the data (a state that does not move): left out of the selection.
 * :func:`threshold_refit` — the selection stage: drop terms of small relative
   contribution, refit the rest by Huber with ``lam = 0``, until the support is stable.
 * :func:`select` — runs the path, the selection stage at every point, and picks
@@ -35,6 +37,7 @@ Examples
 True
 """
 
+from .aliasing import ALIAS_RTOL, aliased_columns
 from .criteria import (
     CRITERIA,
     Selection,
@@ -51,6 +54,7 @@ from .screening import Screening, screen_rows
 from .significance import SIGNIFICANCE, robust_t
 
 __all__ = [
+    "ALIAS_RTOL",
     "CRITERIA",
     "HUBER_EFFICIENCY_CONSTANT",
     "PATH_MAX_ITER",
@@ -59,6 +63,7 @@ __all__ = [
     "Path",
     "Screening",
     "Selection",
+    "aliased_columns",
     "auto_delta",
     "blocked_folds",
     "correlation_time",
