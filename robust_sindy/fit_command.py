@@ -15,7 +15,6 @@ from pathlib import Path
 import numpy as np
 
 from .library import BaseLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
-from .selection.significance import SIGNIFICANCE
 
 __all__ = ["FitJob", "parse_library", "read_table", "run"]
 
@@ -365,7 +364,7 @@ def _summary(model, job, source: str, messages) -> list[str]:
     for label, mask in (
         ("dropped as errors-in-variables bias", model.bias_dropped_),
         ("left out below the noise floor", np.isfinite(model.below_floor_)),
-        (f"selected, robust t below {SIGNIFICANCE:g}", d.weak),
+        (f"selected, robust t below {d.significance_level:g}", d.weak),
     ):
         for state, row in zip(job.states, mask, strict=True):
             if row.any():

@@ -32,7 +32,7 @@ from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
 from .selection.screening import temporal_screen
-from .selection.significance import SIGNIFICANCE, robust_t
+from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t
 from .simulate import check_time, input_function
 from .solvers.chunked import is_dask
 
@@ -126,8 +126,12 @@ class Diagnostics:
         standard error, :func:`robust_sindy.selection.significance.robust_t`); NaN off
         the support and with a fixed ``lam``.  With estimated derivatives it leaves out
         the differentiation error, which is systematic, so it overstates how sure the
-        data are.  A selected term below ``SIGNIFICANCE`` is not vouched for by the data
-        (a warning says so).
+        data are.  A selected term below ``significance_level`` is not vouched for by the
+        data (a warning says so).
+    significance_level : float
+        The bar of ``significance``: ``SIGNIFICANCE`` (5) with measured derivatives,
+        ``SIGNIFICANCE_ESTIMATED`` (10) with estimated ones, whose error the statistic
+        leaves out.
     aliased : list of str
         Library terms left out of the selection because they are exact linear
         combinations of earlier terms on the kept samples (a state that does not move,
@@ -154,12 +158,14 @@ class Diagnostics:
     below_floor: np.ndarray
     bic_margin: np.ndarray
     significance: np.ndarray
+    significance_level: float
     aliased: list[str]
 
     @property
     def weak(self) -> np.ndarray:
-        """Selected terms within ``SIGNIFICANCE`` robust standard errors of zero (n, p)."""
-        return np.nan_to_num(self.significance, nan=np.inf) < SIGNIFICANCE
+        """Selected terms within ``significance_level`` robust standard errors of zero
+        (n, p)."""
+        return np.nan_to_num(self.significance, nan=np.inf) < self.significance_level
 
     def problems(self) -> list[str]:
         """One sentence for each reason to doubt the model (empty when there is none)."""
@@ -245,10 +251,15 @@ class Diagnostics:
             low = ", ".join(f"{v:.2g}" for v in _smallest(self.significance)[rows])
             out.append(
                 f"equations {rows.tolist()}: {counts} selected terms are within "
-                f"{SIGNIFICANCE:g} standard errors of zero (smallest robust t {low}): the "
-                "data do not vouch for them (with estimated derivatives the statistic "
-                "leaves out their error, so they are weaker still); see "
-                "diagnostics_.significance, and try more data or measured derivatives"
+                f"{self.significance_level:g} standard errors of zero (smallest robust t "
+                f"{low}): the data do not vouch for them"
+                + (
+                    ""
+                    if self.significance_level <= SIGNIFICANCE
+                    else f" (the bar is {self.significance_level:g}, not {SIGNIFICANCE:g}, "
+                    "because the statistic leaves out the error of estimated derivatives)"
+                )
+                + "; see diagnostics_.significance, and try more data or measured derivatives"
             )
         close = np.flatnonzero(self.bic_margin < MIN_BIC_MARGIN)
         if close.size:
@@ -923,7 +934,7 @@ class HuberSINDy(BaseEstimator):
         self.coef_ = np.ascontiguousarray(coef.T)
         self.support_ = self.coef_ != 0
         self.outliers_ = np.abs(y - theta @ coef) > self.delta_
-        self.diagnostics_ = self._diagnose(th_s[keep], y_s[keep], entry_flags)
+        self.diagnostics_ = self._diagnose(th_s[keep], y_s[keep], entry_flags, measured)
         self._warn(self.diagnostics_)
         return self
 
@@ -1110,7 +1121,7 @@ class HuberSINDy(BaseEstimator):
         ok = sing > 1e-8 * sing[0]
         return columns, float(np.max(np.sqrt(along[ok]) / sing[ok]))
 
-    def _diagnose(self, theta_kept, y_kept, entry_flags) -> Diagnostics:
+    def _diagnose(self, theta_kept, y_kept, entry_flags, measured: bool) -> Diagnostics:
         """What the fit can and cannot vouch for (see :class:`Diagnostics`)."""
         m, p = self.screened_.size, theta_kept.shape[1]
         cond = np.ones(self.coef_.shape[0])
@@ -1147,6 +1158,7 @@ class HuberSINDy(BaseEstimator):
                 else np.full(self.coef_.shape[0], np.nan)
             ),
             significance=self.significance_.copy(),
+            significance_level=SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED,
             aliased=[self.get_feature_names()[j] for j in np.flatnonzero(self.aliased_)],
         )
 

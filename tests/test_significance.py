@@ -145,3 +145,26 @@ def test_a_selected_term_the_data_do_not_vouch_for_is_reported():
     (message,) = dataclasses.replace(d, significance=t).problems()
     assert message.startswith("equations [2]: 1 selected terms are within 5 standard errors")
     assert "2.5" in message
+
+
+def test_with_estimated_derivatives_the_bar_is_higher():
+    import dataclasses
+
+    from robust_sindy.selection.significance import SIGNIFICANCE_ESTIMATED
+    from robust_sindy.systems import Lorenz
+
+    data = Lorenz().generate(t_end=5.0)
+    measured = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
+    estimated = HuberSINDy().fit(data.x, data.t).diagnostics_
+    assert measured.significance_level == SIGNIFICANCE < SIGNIFICANCE_ESTIMATED
+    assert estimated.significance_level == SIGNIFICANCE_ESTIMATED
+    # a term at t = 7 passes the bar of measured derivatives, not that of estimated ones
+    for d, flagged in ((measured, False), (estimated, True)):
+        t = d.significance.copy()
+        t[0, np.flatnonzero(np.isfinite(t[0]))[0]] = 7.0
+        replaced = dataclasses.replace(d, significance=t)
+        assert bool(replaced.weak.any()) == flagged
+        messages = [m for m in replaced.problems() if "standard errors of zero" in m]
+        assert len(messages) == int(flagged)
+        if flagged:
+            assert "within 10 standard errors" in messages[0] and "estimated" in messages[0]
