@@ -27,7 +27,7 @@ from ._validation import as_float_array, per_column
 from .differentiation import finite_difference, local_polynomial_derivative, savgol_derivative
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
-from .selection.aliasing import aliased_columns
+from .selection.aliasing import ALIAS_RTOL, aliased_columns
 from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
@@ -939,16 +939,27 @@ class HuberSINDy(BaseEstimator):
         return self
 
     def _derivatives(self, xs, ts, entry_flags):
-        """Derivatives per trajectory: of the repaired states, outliers given no weight."""
-        if self.temporal_ is None:
-            return [self._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
+        """Derivatives per trajectory: of the repaired states, outliers given no weight.
+
+        A state that does not move within a trajectory (its range within ``ALIAS_RTOL``
+        of its magnitude: constant up to rounding) has derivative 0 there, not the
+        rounding of its differences, which standardisation would blow up to unit size.
+        """
         out = []
-        for seg, ti in zip(_segments(xs), ts, strict=True):
-            repaired = self.temporal_.repaired[seg]
-            if _is_robust(self.differentiation):
-                out.append(local_polynomial_derivative(repaired, ti, mask=~entry_flags[seg]))
+        for seg, a, ti in zip(_segments(xs), xs, ts, strict=True):
+            if self.temporal_ is None:
+                states = a
+                d = self._differentiate(a, ti)
             else:
-                out.append(self._differentiate(repaired, ti))
+                states = self.temporal_.repaired[seg]
+                if _is_robust(self.differentiation):
+                    d = local_polynomial_derivative(states, ti, mask=~entry_flags[seg])
+                else:
+                    d = self._differentiate(states, ti)
+            still = np.ptp(states, axis=0) <= ALIAS_RTOL * np.max(np.abs(states), axis=0)
+            d = np.array(d, dtype=float)
+            d[:, still] = 0.0
+            out.append(d)
         return out
 
     def _check_params(self):
