@@ -60,3 +60,20 @@ def test_the_ensemble_peer_gives_the_same_result_on_every_run(systems):
     assert runs[0][0]["iae"] == runs[1][0]["iae"]
     assert runs[0][0]["n_found"] == runs[1][0]["n_found"]
     assert np.random.random() == before  # the caller's random state is left alone  # noqa: NPY002 (the legacy state PySINDy draws from)
+
+
+def test_a_case_can_take_other_contamination(systems):
+    calls = []
+
+    def only_rows(x, family, rng):
+        calls.append(family)
+        bad = np.zeros(x.shape, dtype=bool)
+        bad[::10] = True
+        return x + 0.01 * bad * x.std(axis=0), bad
+
+    (row,) = zoo.run_case(
+        systems["Lorenz"], "rows", "exact", 0, methods=("huber",), n_samples=600,
+        contaminate=only_rows,
+    )  # fmt: skip
+    assert calls == ["rows"]
+    assert row["contaminated"] == 0.1
