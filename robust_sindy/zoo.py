@@ -36,6 +36,8 @@ __all__ = [
     "DERIVATIVES",
     "FAMILIES",
     "METHODS",
+    "ZOO_CONTAMINATION",
+    "Contamination",
     "ZooSystem",
     "contaminate_family",
     "polynomial_systems",
@@ -59,6 +61,29 @@ METHODS = ("huber", "stlsq", "sr3_trim", "ensemble")
 
 BASE_NOISE = 1e-3
 _COEF_CUT = 1e-9
+
+
+@dataclass(frozen=True)
+class Contamination:
+    """Parameters of the contamination families (fractions of samples or entries;
+    amplitudes relative to each state's standard deviation).  The defaults are the
+    zoo's (:data:`FAMILIES`); held-out checks pass others."""
+
+    base_noise: float = BASE_NOISE
+    rows_fraction: float = 0.2
+    rows_scale: float = 0.2
+    spikes_fraction: float = 0.05
+    spikes_range: tuple[float, float] = (0.5, 2.0)
+    heavy_dof: float = 2.0
+    heavy_scale: float = 0.01
+    bursts: int = 3
+    bursts_fraction: float = 0.02
+    bursts_scale: float = 0.3
+    dropouts_fraction: float = 0.05
+
+
+#: The zoo's contamination.
+ZOO_CONTAMINATION = Contamination()
 
 
 @dataclass
@@ -158,8 +183,11 @@ def simulate_system(system: ZooSystem, n_samples: int, seed: int, pts_per_period
     return t_eval - t_eval[0], x, system.rhs(x)
 
 
-def contaminate_family(x: np.ndarray, family: str, rng: np.random.Generator):
-    """Measured states for ``family`` and the mask of contaminated entries (m, n)."""
+def contaminate_family(
+    x: np.ndarray, family: str, rng: np.random.Generator, params: Contamination = ZOO_CONTAMINATION
+):
+    """Measured states for ``family`` and the mask of contaminated entries (m, n);
+    ``params`` sets the fractions and amplitudes (the zoo's by default)."""
     if family not in FAMILIES:
         raise ValueError(f"family must be one of {FAMILIES}; got {family!r}")
     m, n = x.shape
@@ -167,26 +195,26 @@ def contaminate_family(x: np.ndarray, family: str, rng: np.random.Generator):
     s = np.where(s > 0, s, 1.0)
     bad = np.zeros((m, n), dtype=bool)
     if family == "heavy":
-        return x + 0.01 * s * rng.standard_t(2, size=(m, n)), bad
-    noisy = x + BASE_NOISE * s * rng.normal(size=(m, n))
+        return x + params.heavy_scale * s * rng.standard_t(params.heavy_dof, size=(m, n)), bad
+    noisy = x + params.base_noise * s * rng.normal(size=(m, n))
     if family == "rows":
-        rows = rng.choice(m, round(0.2 * m), replace=False)
-        noisy[rows] += 0.2 * s * rng.normal(size=(rows.size, n))
+        rows = rng.choice(m, round(params.rows_fraction * m), replace=False)
+        noisy[rows] += params.rows_scale * s * rng.normal(size=(rows.size, n))
         bad[rows] = True
     elif family == "spikes":
-        k = round(0.05 * m * n)
+        k = round(params.spikes_fraction * m * n)
         flat = rng.choice(m * n, k, replace=False)
         i, j = np.unravel_index(flat, (m, n))
-        noisy[i, j] += rng.choice([-1.0, 1.0], k) * rng.uniform(0.5, 2.0, k) * s[j]
+        noisy[i, j] += rng.choice([-1.0, 1.0], k) * rng.uniform(*params.spikes_range, k) * s[j]
         bad[i, j] = True
     elif family == "bursts":
-        length = max(1, round(0.02 * m))
-        for start in rng.choice(m - length, 3, replace=False):
+        length = max(1, round(params.bursts_fraction * m))
+        for start in rng.choice(m - length, params.bursts, replace=False):
             sl = slice(start, start + length)
-            noisy[sl] += 0.3 * s * rng.normal(size=(length, n))
+            noisy[sl] += params.bursts_scale * s * rng.normal(size=(length, n))
             bad[sl] = True
     elif family == "dropouts":
-        rows = rng.choice(m, round(0.05 * m), replace=False)
+        rows = rng.choice(m, round(params.dropouts_fraction * m), replace=False)
         noisy[rows] = 0.0
         bad[rows] = True
     return noisy, bad
@@ -237,16 +265,13 @@ def run_case(
     seed: int,
     methods=METHODS,
     n_samples: int = 2000,
-    contaminate=None,
+    contamination: Contamination = ZOO_CONTAMINATION,
 ) -> list[dict]:
-    """Identify ``system`` under one contamination case with every method; one row each.
-
-    ``contaminate(x, family, rng) -> (noisy, bad)`` replaces :func:`contaminate_family`
-    (other contamination parameters for held-out checks).
-    """
+    """Identify ``system`` under one contamination case with every method; one row each
+    (``contamination``: other parameters for held-out checks)."""
     rng = np.random.default_rng([seed, FAMILIES.index(family), DERIVATIVES.index(derivatives)])
     t, x, dx = simulate_system(system, n_samples, seed)
-    noisy, bad = (contaminate or contaminate_family)(x, family, rng)
+    noisy, bad = contaminate_family(x, family, rng, contamination)
     x_dot = dx if derivatives == "exact" else None
     peer_seed = int(rng.integers(2**31))
     true = system.coef
