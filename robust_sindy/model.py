@@ -813,6 +813,7 @@ class HuberSINDy(BaseEstimator):
         options = dict(self.solver_options or {})
         huber_method = self.method if self.method in ("admm", "cvxpy") else "admm"
         keep = np.ones(m, dtype=bool)
+        noise_all = self._noise_columns(z, keep)
         self.screening_ = None
         if self.screen:
             self.screening_ = screen_rows(
@@ -821,6 +822,10 @@ class HuberSINDy(BaseEstimator):
                 start=~entry_flags.any(axis=1),
                 segments=_segments(xs),
                 method=huber_method,
+                # The state noise carried through the model excuses residuals only
+                # where it is all they contain: estimated derivatives add their own
+                # errors along fast excursions, where the carried noise is largest.
+                noise=noise_all if measured else None,
             )
             keep = ~self.screening_.outliers
         self.screened_ = ~keep
@@ -837,7 +842,7 @@ class HuberSINDy(BaseEstimator):
         # A term that contributes less than the noise of the library columns themselves
         # cannot be told from errors in the variables: the selection stage's threshold
         # is at least the relative noise of the noisiest column.
-        noise = self._noise_columns(z, keep)
+        noise = None if noise_all is None else [a[keep] for a in noise_all]
         self.library_noise_ = self._library_noise(noise, th)
         column_noise = self.library_noise_[0][~self.aliased_]
         self.selection_tol_ = float(

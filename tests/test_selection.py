@@ -153,6 +153,64 @@ def test_screen_flags_nothing_on_clean_data():
     assert not screen_rows(theta, data.x_dot).outliers.any()
 
 
+def _steep_problem(seed, m=1500, sigma=1e-3):
+    """x' = -x^3 observed with noisy states, most samples near 0 (a trajectory that
+    rests and makes excursions): the residuals the state noise gives grow as
+    3 x^2 sigma, a hundred times larger at |x| = 1 than at |x| = 0.1."""
+    rng = np.random.default_rng(seed)
+    x = np.linspace(-1.0, 1.0, m) ** 3
+    noisy = x + sigma * rng.standard_normal(m)
+    theta = np.column_stack([np.ones(m), noisy, noisy**2, noisy**3])
+    noise = [sigma * np.column_stack([np.zeros(m), np.ones(m), 2 * noisy, 3 * noisy**2])]
+    return theta, -(x**3), noise, np.abs(x) < 0.5
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_state_noise_carried_through_a_steep_model_is_not_flagged(seed):
+    theta, y, noise, _ = _steep_problem(seed)
+    bare = screen_rows(theta, y)
+    assert bare.outliers.mean() > 0.1  # the residual scale of the flat part flags the steep one
+    s = screen_rows(theta, y, noise=noise)
+    assert s.outliers.mean() <= 0.02
+    theta[100, 1:] = [3.0, 9.0, 27.0]  # one gross error in the state is still found
+    assert screen_rows(theta, y, noise=noise).outliers[100]
+
+
+def _excursion_problem(seed, m=1500, start=1200):
+    """y = x2 + noise 1e-3; on the first ``start`` samples x2 is x1^2, so that
+    there the columns x2 and x1^2 are the same up to 1e-5 and only the excursion (the
+    remaining samples, x2 away from x1^2) tells them apart."""
+    rng = np.random.default_rng(seed)
+    x1 = rng.uniform(-1.0, 1.0, m)
+    x2 = x1**2 + 1e-5 * rng.standard_normal(m)
+    x2[start:] = rng.uniform(-1.0, 1.0, m - start)
+    theta = np.column_stack([np.ones(m), x1, x2, x1**2, x1 * x2, x2**2])
+    y = x2 + 1e-3 * rng.standard_normal(m)
+    return theta, y, np.arange(m) < start
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_start_that_misses_an_excursion_is_overruled(seed):
+    # On the start alone the pilot cannot tell x2 from x1^2: it extrapolates to the
+    # excursion and flags it; the iteration from every sample explains more samples.
+    theta, y, start = _excursion_problem(seed)
+    s = screen_rows(theta, y, start=start)
+    assert s.outliers.mean() <= 0.02
+    # Gross errors in the excursion are still found, and nothing else.
+    rng = np.random.default_rng(seed)
+    bad = rng.choice(np.flatnonzero(~start), 30, replace=False)
+    y[bad] += rng.choice([-1.0, 1.0], 30) * rng.uniform(0.5, 1.0, 30)
+    s = screen_rows(theta, y, start=start)
+    assert s.outliers[bad].all()
+    assert s.outliers[~np.isin(np.arange(y.size), bad)].mean() <= 0.02
+
+
+def test_noise_columns_must_match_the_library():
+    theta, y, noise, _ = _steep_problem(0)
+    with pytest.raises(ValueError, match="noise"):
+        screen_rows(theta, y, noise=[noise[0][:, :2]])
+
+
 @pytest.mark.parametrize("seed", [0, 1])
 def test_huber_sindy_defaults_recover_lorenz_from_contaminated_states(seed):
     _, noisy, lorenz = _lorenz_problem(seed)

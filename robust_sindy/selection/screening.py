@@ -47,6 +47,10 @@ __all__ = [
 _SCALE_FLOOR = 1e-4
 #: Rounds of the model-based screen in which flags may also be withdrawn.
 _FREE_ROUNDS = 5
+#: Fraction of the samples by which the iteration from every sample must explain more
+#: than the one from the start to replace it (the screen's nominal false-positive
+#: rate: smaller differences are the noise of two fits of the same model).
+_COMPETE_MARGIN = 0.02
 
 
 @dataclass(repr=False)
@@ -475,6 +479,7 @@ def screen_rows(
     scale_window: int = 25,
     max_rounds: int = 20,
     method: str = "admm",
+    noise=None,
 ) -> Screening:
     """Flag samples whose residual is gross in any equation of a robust pilot.
 
@@ -488,7 +493,19 @@ def screen_rows(
        samples of the same trajectory (when ``segments`` are given; residuals that grow
        smoothly along a fast part of the trajectory are not outliers) in any equation;
        refit the pilot on the kept samples and repeat from 2 until the flags are stable
-       (after five rounds flags are only added, so the iteration cannot oscillate).
+       (after five rounds flags are only added, so the iteration cannot oscillate);
+    4. when ``start`` left samples out and the iteration flagged more than 2 % of the
+       samples, iterate again from every sample, and keep the second outcome if its
+       model explains (residual within the bound) more than 2 % more samples, both
+       judged at the smaller of their two scales: a start that misses a fast excursion
+       gives a pilot that extrapolates there, while a pilot bent by gross errors has the
+       larger scale and explains fewer samples.
+
+    With ``noise`` (the noise of the states carried through the library, one array per
+    state), the bound of a sample is also at least the residual that this noise gives
+    it under the pilot's model, ``sqrt(sum_k (noise_k[i] @ coef_j)^2)``: where the
+    right-hand side is steep (a fast excursion) the noise of good states gives large
+    residuals, which are not gross errors.
 
     Parameters
     ----------
@@ -504,6 +521,9 @@ def screen_rows(
     max_rounds : int
     method : {"admm", "cvxpy"}
         Solver of the pilot fits.
+    noise : list of array_like (m, p), optional
+        Per state, the first-order noise of every library column at every sample (the
+        state's noise level times the column's derivative by that state).
 
     Returns
     -------
@@ -528,6 +548,10 @@ def screen_rows(
     rounds = check_int(max_rounds, "max_rounds", 1)
     _check_method(method, "the pilot fits")
     m, p = theta.shape
+    if noise is not None:
+        noise = [as_float_array(a, "noise", (2,)) for a in noise]
+        if any(a.shape != (m, p) for a in noise):
+            raise ValueError(f"noise must be a list of arrays of shape ({m}, {p})")
     if start is None:
         keep = np.ones(m, dtype=bool)
     else:
@@ -539,32 +563,56 @@ def screen_rows(
     first = keep.copy()
     rms = np.sqrt(np.mean(y**2, axis=0))
     rms = np.where(rms > 0, rms, 1.0)
-    flags = None
-    converged = False
-    done_rounds = 0
-    scale = np.zeros(y.shape[1])
+    local = None if segments is None else (lambda r: _segment_local_scale(r, segments, half, first))
+
+    def bound_of(r, scale, coef):
+        bound = np.broadcast_to(scale, r.shape)
+        if local is not None:
+            bound = np.maximum(bound, local(r))
+        if noise:
+            bound = np.maximum(bound, np.sqrt(sum((a @ coef) ** 2 for a in noise)))
+        return bound
+
     # The pilots only propose flags: a bounded budget, their certificates not required
     # (the final fit of the kept samples is certified on its own).
     budget = pilot_budget(method)
-    for done_rounds in range(1, rounds + 1):
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
-            coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
-        r = y - theta @ coef
-        r = r - np.median(r[keep], axis=0)
-        scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), _SCALE_FLOOR * rms)
-        bound = np.broadcast_to(scale, r.shape)
-        if segments is not None:
-            bound = np.maximum(bound, _segment_local_scale(r, segments, half, first))
-        new = (np.abs(r) > cutoff * bound).any(axis=1)
-        if flags is not None and done_rounds > _FREE_ROUNDS:
-            new |= flags  # past the free rounds flags are only added: no oscillation
-        if flags is not None and np.array_equal(new, flags):
-            converged = True
-            break
-        flags = new
-        keep = ~flags
-        if keep.sum() <= p:
-            break
+
+    def iterate(keep):
+        flags, converged, done, scale = None, False, 0, np.zeros(y.shape[1])
+        for done in range(1, rounds + 1):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ConvergenceWarning)
+                delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
+                coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
+            r = y - theta @ coef
+            r = r - np.median(r[keep], axis=0)
+            scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), _SCALE_FLOOR * rms)
+            new = (np.abs(r) > cutoff * bound_of(r, scale, coef)).any(axis=1)
+            if flags is not None and done > _FREE_ROUNDS:
+                new |= flags  # past the free rounds flags are only added: no oscillation
+            if flags is not None and np.array_equal(new, flags):
+                converged = True
+                break
+            flags = new
+            keep = ~flags
+            if keep.sum() <= p:
+                break
+        return flags, scale, done, converged, r, coef
+
+    flags, scale, done_rounds, converged, r, coef = iterate(keep)
+    if not first.all() and flags.mean() > _COMPETE_MARGIN:
+        # The start may have left out the samples that excite some library directions
+        # (a fast excursion the temporal screen could not follow); then its pilot
+        # extrapolates there and keeps flagging good samples.  A second iteration from
+        # every sample competes: the one whose model explains more samples at the
+        # smaller of the two noise scales wins, by more than 2 % of the samples (a
+        # pilot bent by gross errors has a larger scale and explains fewer).
+        other = iterate(np.ones(m, dtype=bool))
+        common = np.minimum(scale, other[1])
+        explained = [
+            int((np.abs(rr) <= cutoff * bound_of(rr, common, cc)).all(axis=1).sum())
+            for rr, cc in ((r, coef), (other[4], other[5]))
+        ]
+        if explained[1] - explained[0] > _COMPETE_MARGIN * m:
+            flags, scale, done_rounds, converged = other[:4]
     return Screening(flags, scale, scale / rms, first, done_rounds, converged)
