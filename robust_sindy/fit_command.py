@@ -364,6 +364,7 @@ def _summary(model, job, source: str, messages) -> list[str]:
     for label, mask in (
         ("dropped as errors-in-variables bias", model.bias_dropped_),
         ("left out below the noise floor", np.isfinite(model.below_floor_)),
+        (f"dropped, robust t below {d.significance_level:g}", np.isfinite(model.pruned_)),
         (f"selected, robust t below {d.significance_level:g}", d.weak),
     ):
         for state, row in zip(job.states, mask, strict=True):

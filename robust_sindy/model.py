@@ -32,7 +32,7 @@ from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
 from .selection.screening import temporal_screen
-from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t
+from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, VISIBLE, robust_t
 from .simulate import check_time, input_function
 from .solvers.chunked import is_dask
 
@@ -132,6 +132,12 @@ class Diagnostics:
         The bar of ``significance``: ``SIGNIFICANCE`` (5) with measured derivatives,
         ``SIGNIFICANCE_ESTIMATED`` (10) with estimated ones, whose error the statistic
         leaves out.
+    pruned : ndarray (n, p)
+        With estimated derivatives, the robust t of each term the selection chose but
+        the data did not vouch for (below ``significance_level``), when it was dropped
+        (the weakest first, the rest refitted after each, while another term of the
+        equation reaches the bar); NaN for every other term.  A dropped term at
+        ``VISIBLE`` (2) or more may be real: a warning says so.
     aliased : list of str
         Library terms left out of the selection because they are exact linear
         combinations of earlier terms on the kept samples (a state that does not move,
@@ -159,6 +165,7 @@ class Diagnostics:
     bic_margin: np.ndarray
     significance: np.ndarray
     significance_level: float
+    pruned: np.ndarray
     aliased: list[str]
 
     @property
@@ -261,6 +268,16 @@ class Diagnostics:
                 )
                 + "; see diagnostics_.significance, and try more data or measured derivatives"
             )
+        seen, counts = _equations_with(np.nan_to_num(self.pruned) >= VISIBLE)
+        if seen.size:
+            high = ", ".join(f"{v:.2g}" for v in np.nanmax(self.pruned[seen], axis=1))
+            out.append(
+                f"equations {seen.tolist()}: {counts} selected terms were dropped because "
+                f"their robust t was below {self.significance_level:g} (the bar with "
+                f"estimated derivatives), yet at least {VISIBLE:g} (largest {high}): they "
+                "may be real, and these data cannot decide (see diagnostics_.pruned); "
+                "measured derivatives, more data or less noisy states would"
+            )
         close = np.flatnonzero(self.bic_margin < MIN_BIC_MARGIN)
         if close.size:
             margins = ", ".join(f"{v:.1f}" for v in self.bic_margin[close])
@@ -293,6 +310,8 @@ class Diagnostics:
             f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}",
             "  smallest robust t per equation: "
             + np.array2string(_smallest(self.significance), precision=3),
+            "  terms dropped below the significance bar per equation: "
+            f"{np.isfinite(self.pruned).sum(axis=1).tolist()}",
             f"  aliased terms left out: {', '.join(self.aliased) or 'none'}",
         ]
         problems = self.problems()
@@ -341,7 +360,11 @@ class HuberSINDy(BaseEstimator):
     4. ``lam="auto"`` with the screen: selected terms within ``BIAS_MARGIN`` times the
        bias that the states' noise can give them through the other terms (errors in
        the variables, :mod:`robust_sindy.selection.bias`) are dropped one at a time
-       and the rest refitted (``bias_dropped_``).
+       and the rest refitted (``bias_dropped_``);
+    5. ``lam="auto"`` with estimated derivatives: selected terms whose robust t is
+       below ``SIGNIFICANCE_ESTIMATED`` are dropped, the weakest first, the rest
+       refitted after each, in every equation with a term that reaches it
+       (``pruned_``; a warning when a dropped term reached t 2).
 
     Fixed values turn each step into the plain estimator (``screen=False``,
     ``delta=1.0, lam=1.0`` is the paper's).  ``threshold`` and ``refit`` then act on
@@ -447,6 +470,9 @@ class HuberSINDy(BaseEstimator):
         ``selection_tol`` and the noise floor ``selection_tol_``; NaN elsewhere.
     significance_ : ndarray, shape (n_targets, n_features)
         Robust t statistic of each selected term (see :class:`Diagnostics`).
+    pruned_ : ndarray, shape (n_targets, n_features)
+        With estimated derivatives and ``lam="auto"``, the robust t at which each term
+        dropped below the bar was dropped; NaN elsewhere (see :class:`Diagnostics`).
     aliased_ : ndarray of bool, shape (n_features,)
         Library terms left out of the selection as exact linear combinations of earlier
         ones on the kept samples (``lam="auto"`` only; see :class:`Diagnostics`).
@@ -923,6 +949,12 @@ class HuberSINDy(BaseEstimator):
                 options,
                 _segments_of(keep, xs) if measured else None,
             )
+        pruned = np.full(coef.shape, np.nan)
+        if self.selection_ is not None and not measured:
+            coef, pruned = self._prune(
+                theta[keep], y[keep], th, yk, coef, delta_s, options, _segments_of(keep, xs)
+            )
+        self.pruned_ = np.ascontiguousarray(pruned.T)
         self.bias_ratio_ = np.ascontiguousarray(ratio.T)
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
         below = np.full(coef.shape, np.nan)
@@ -1068,6 +1100,31 @@ class HuberSINDy(BaseEstimator):
                 break
         return coef, ratio
 
+    def _prune(self, theta, y, th, yk, coef, delta_s, options, segments):
+        """Estimated derivatives: drop the selected term with the smallest robust t
+        while it is below ``SIGNIFICANCE_ESTIMATED``, per equation, refitting after each
+        round.  The selection's criterion counts every sample as independent evidence,
+        while the errors of estimated derivatives are smooth in time and shared with
+        the library: terms it admits that the data do not vouch for are fitted to those
+        errors.  An equation none of whose terms reaches the bar is left as selected
+        (the data vouch for no version of it, and a warning says so).  Returns the
+        coefficients and the t of each dropped term (NaN elsewhere)."""
+        scaler = self.standardizer_
+        pruned = np.full(coef.shape, np.nan)
+        for _ in range(coef.shape[0]):
+            tstat = robust_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
+            tstat = np.where(coef != 0, np.nan_to_num(tstat, nan=np.inf), np.inf)
+            weakest = np.argmin(tstat, axis=0)
+            vouched = np.where(coef != 0, tstat, 0.0).max(axis=0) >= SIGNIFICANCE_ESTIMATED
+            low = tstat[weakest, np.arange(coef.shape[1])] < SIGNIFICANCE_ESTIMATED
+            cols = np.flatnonzero(low & vouched)
+            if cols.size == 0:
+                break
+            pruned[weakest[cols], cols] = tstat[weakest[cols], cols]
+            coef[weakest[cols], cols] = 0.0
+            coef = self._refit(theta, y, coef, options)
+        return coef, pruned
+
     def _stability(self, theta_kept, y_kept) -> np.ndarray:
         """Selected terms that leaving out one block of the data changes (see Diagnostics)."""
         scaler = self.standardizer_
@@ -1175,6 +1232,7 @@ class HuberSINDy(BaseEstimator):
             ),
             significance=self.significance_.copy(),
             significance_level=SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED,
+            pruned=self.pruned_.copy(),
             aliased=[self.get_feature_names()[j] for j in np.flatnonzero(self.aliased_)],
         )
 

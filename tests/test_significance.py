@@ -168,3 +168,51 @@ def test_with_estimated_derivatives_the_bar_is_higher():
         assert len(messages) == int(flagged)
         if flagged:
             assert "within 10 standard errors" in messages[0] and "estimated" in messages[0]
+
+
+def _zoo_states(name, family):
+    """A zoo case with states only (seed 0): the data ``robust-sindy zoo`` fits."""
+    from robust_sindy import zoo
+
+    system = {s.name: s for s in zoo.polynomial_systems()}[name]
+    rng = np.random.default_rng([0, zoo.FAMILIES.index(family), 1])
+    t, x, _ = zoo.simulate_system(system, 2000, 0)
+    noisy, _ = zoo.contaminate_family(x, family, rng)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = HuberSINDy(library=PolynomialLibrary(degree=system.degree)).fit(noisy, t)
+    return model, system.coef.T != 0, [str(w.message) for w in caught]
+
+
+def test_estimated_derivatives_drop_the_terms_the_data_do_not_vouch_for():
+    # Lorenz, heavy-tailed state noise, states only: the criterion admits two terms
+    # fitted to the smooth errors of the estimated derivatives (robust t 1.5 and 1.9);
+    # they are dropped, the support is right, and nothing below t 2 is worth a warning.
+    from robust_sindy.selection.significance import SIGNIFICANCE_ESTIMATED, VISIBLE
+
+    model, true, messages = _zoo_states("Lorenz", "heavy")
+    dropped = np.isfinite(model.pruned_)
+    assert dropped.any() and not (dropped & model.support_).any()
+    assert np.all(model.pruned_[dropped] < VISIBLE)
+    assert np.array_equal(model.support_, true)
+    assert np.all(model.significance_[model.support_] >= SIGNIFICANCE_ESTIMATED)
+    assert np.array_equal(model.diagnostics_.pruned, model.pruned_, equal_nan=True)
+    assert not any("were dropped because their robust t" in m for m in messages)
+
+
+def test_a_dropped_term_the_data_see_is_reported():
+    import dataclasses
+
+    from robust_sindy.systems import Lorenz
+
+    data = Lorenz().generate(t_end=5.0)
+    d = HuberSINDy().fit(data.x, data.t).diagnostics_
+    assert not np.isfinite(d.pruned).any()
+    for t_value, reported in ((1.5, False), (3.5, True)):
+        pruned = np.full_like(d.pruned, np.nan)
+        pruned[1, 0] = t_value
+        messages = dataclasses.replace(d, pruned=pruned).problems()
+        found = [m for m in messages if "were dropped because their robust t" in m]
+        assert len(found) == int(reported)
+        if reported:
+            assert found[0].startswith("equations [1]: 1 selected terms") and "3.5" in found[0]

@@ -23,7 +23,7 @@ from .._losses import huber_psi
 from .._validation import check_problem
 from .criteria import correlation_time
 
-__all__ = ["SIGNIFICANCE", "SIGNIFICANCE_ESTIMATED", "robust_t"]
+__all__ = ["SIGNIFICANCE", "SIGNIFICANCE_ESTIMATED", "VISIBLE", "robust_t"]
 
 #: Robust t statistic below which a term under the noise floor is not vouched for:
 #: five standard errors, the conventional threshold for a discovery when the error
@@ -36,6 +36,12 @@ SIGNIFICANCE = 5.0
 #: 960 fits) every right model had all its terms at t >= 12.5, while a wrong one
 #: with no other warning had a spurious term at t = 5.01.
 SIGNIFICANCE_ESTIMATED = 10.0
+
+#: Robust t statistic below which the data do not see a term at all (two standard
+#: errors: its coefficient is indistinguishable from zero at the usual 95 %).  With
+#: estimated derivatives, terms below ``SIGNIFICANCE_ESTIMATED`` are dropped one at a
+#: time; a dropped term that reached this level may be real, and a warning says so.
+VISIBLE = 2.0
 
 
 def robust_t(theta, xdot, coef, delta, segments=None) -> np.ndarray:
