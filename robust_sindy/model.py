@@ -83,6 +83,10 @@ class Diagnostics:
     readmitted_samples : int
         Samples flagged in time whose residuals were fine in every equation (kept).
     screening_converged : bool
+    screening_restarted : bool
+        Whether the model screen kept its iteration from every sample over the one from
+        the samples the temporal screen left alone (that start had lost the samples
+        that alone excite some library directions, e.g. a fast excursion).
     flagged_fraction : float
         Fraction of the samples left out.
     delta_over_scale : ndarray (n,)
@@ -154,6 +158,7 @@ class Diagnostics:
     model_flagged_samples: int
     readmitted_samples: int
     screening_converged: bool
+    screening_restarted: bool
     flagged_fraction: float
     delta_over_scale: np.ndarray
     certified: np.ndarray
@@ -298,7 +303,8 @@ class Diagnostics:
             f"{self.temporal_flagged_samples} samples",
             f"  model screen: {self.model_flagged_samples} samples left out "
             f"({100 * self.flagged_fraction:.1f} %), {self.readmitted_samples} readmitted, "
-            f"converged={self.screening_converged}",
+            f"converged={self.screening_converged}"
+            + (", restarted from every sample" if self.screening_restarted else ""),
             f"  certified: {self.certified.tolist()}",
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
             f"  library noise along its weakest direction: {self.library_noise:.2g}",
@@ -1213,6 +1219,7 @@ class HuberSINDy(BaseEstimator):
             model_flagged_samples=int(self.screened_.sum()),
             readmitted_samples=int((entry_flags.any(axis=1) & ~self.screened_).sum()),
             screening_converged=True if s is None else bool(s.converged),
+            screening_restarted=False if s is None else bool(s.restarted),
             flagged_fraction=float(self.screened_.mean()),
             delta_over_scale=(
                 np.full(self.coef_.shape[0], np.nan)

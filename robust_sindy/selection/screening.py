@@ -448,6 +448,9 @@ class Screening:
         Pilot refits until the flags stopped changing.
     converged : bool
         False when ``max_rounds`` ended the iteration with the flags still changing.
+    restarted : bool
+        True when the iteration from every sample replaced the one from ``start``
+        (step 4 of :func:`screen_rows`).
     """
 
     outliers: np.ndarray
@@ -456,11 +459,12 @@ class Screening:
     start: np.ndarray
     rounds: int
     converged: bool
+    restarted: bool = False
 
     def __repr__(self) -> str:
         return (
             f"Screening(flagged {int(self.outliers.sum())} of {self.outliers.size} samples, "
-            f"rounds={self.rounds}, converged={self.converged})"
+            f"rounds={self.rounds}, converged={self.converged}, restarted={self.restarted})"
         )
 
 
@@ -624,6 +628,7 @@ def screen_rows(
         return flags, scale, done, converged, r, coef
 
     flags, scale, done_rounds, converged, r, coef = iterate(keep)
+    restarted = False
     if (
         not first.all()
         and flags.mean() > _COMPETE_MARGIN
@@ -643,4 +648,5 @@ def screen_rows(
         ]
         if explained[1] - explained[0] > _COMPETE_MARGIN * m:
             flags, scale, done_rounds, converged = other[:4]
-    return Screening(flags, scale, scale / rms, first, done_rounds, converged)
+            restarted = True
+    return Screening(flags, scale, scale / rms, first, done_rounds, converged, restarted)
