@@ -84,9 +84,10 @@ class Diagnostics:
         Samples flagged in time whose residuals were fine in every equation (kept).
     screening_converged : bool
     screening_restarted : bool
-        Whether the model screen kept its iteration from every sample over the one from
-        the samples the temporal screen left alone (that start had lost the samples
-        that alone excite some library directions, e.g. a fast excursion).
+        Whether the model screen kept another iteration (from every sample, or from a
+        forward search) over the one from the samples the temporal screen left alone
+        (that start had lost the samples that alone excite some library directions,
+        e.g. a fast excursion).
     flagged_fraction : float
         Fraction of the samples left out.
     delta_over_scale : ndarray (n,)
@@ -304,7 +305,7 @@ class Diagnostics:
             f"  model screen: {self.model_flagged_samples} samples left out "
             f"({100 * self.flagged_fraction:.1f} %), {self.readmitted_samples} readmitted, "
             f"converged={self.screening_converged}"
-            + (", restarted from every sample" if self.screening_restarted else ""),
+            + (", restarted" if self.screening_restarted else ""),
             f"  certified: {self.certified.tolist()}",
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
             f"  library noise along its weakest direction: {self.library_noise:.2g}",

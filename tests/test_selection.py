@@ -205,6 +205,25 @@ def test_a_start_that_misses_an_excursion_is_overruled(seed):
     assert s.outliers[~np.isin(np.arange(y.size), bad)].mean() <= 0.02
 
 
+
+@pytest.mark.parametrize("seed", range(3))
+def test_a_forward_search_reaches_the_excursion_before_high_leverage_outliers(seed):
+    # 10 % of the samples have both states off by 30 times their range: a pilot on
+    # every sample is bent by them, one on the start extrapolates to the excursion;
+    # the forward search grows the start towards the excursion and keeps it.
+    theta, y, start = _excursion_problem(seed)
+    m = y.size
+    rng = np.random.default_rng(seed)
+    bad = np.isin(np.arange(m), rng.choice(m, 150, replace=False))
+    x1, x2 = theta[:, 1].copy(), theta[:, 2].copy()
+    x1[bad] += rng.normal(scale=30.0, size=bad.sum())
+    x2[bad] += rng.normal(scale=30.0, size=bad.sum())
+    theta = np.column_stack([np.ones(m), x1, x2, x1**2, x1 * x2, x2**2])
+    s = screen_rows(theta, y, start=start & ~bad)
+    assert s.restarted
+    assert s.outliers[bad].mean() >= 0.98
+    assert s.outliers[~bad].mean() <= 0.02
+
 def test_noise_columns_must_match_the_library():
     theta, y, noise, _ = _steep_problem(0)
     with pytest.raises(ValueError, match="noise"):

@@ -449,8 +449,8 @@ class Screening:
     converged : bool
         False when ``max_rounds`` ended the iteration with the flags still changing.
     restarted : bool
-        True when the iteration from every sample replaced the one from ``start``
-        (step 4 of :func:`screen_rows`).
+        True when another iteration (from every sample, or from a forward search)
+        replaced the one from ``start`` (step 4 of :func:`screen_rows`).
     """
 
     outliers: np.ndarray
@@ -523,11 +523,14 @@ def screen_rows(
     4. when ``start`` left samples out, the iteration flagged more than 2 % of the
        samples, and some library direction is excited more than 100 times more (mean
        square per sample) by all the samples than by the start, iterate again from
-       every sample, and keep the second outcome if its
-       model explains (residual within the bound) more than 2 % more samples, both
-       judged at the smaller of their two scales: a start that misses a fast excursion
-       gives a pilot that extrapolates there, while a pilot bent by gross errors has the
-       larger scale and explains fewer samples.
+       every sample, and from a forward search (from the kept samples, add the 2 % of
+       the samples with the smallest scaled residuals, refit, repeat until 90 % are in,
+       and keep the set whose model explained most samples); keep the outcome whose
+       model explains (residual within the bound) most samples, if that is more than
+       2 % more than the first, all judged at the smallest of their scales: a start
+       that misses a fast excursion gives a pilot that extrapolates there, a pilot
+       bent by gross errors has a larger scale and explains fewer samples, and the
+       forward search reaches the excursion one step at a time, before the outliers.
 
     With ``noise`` (the noise of the states carried through the library, one array per
     state), the bound of a sample is also at least the residual that this noise gives
@@ -627,6 +630,31 @@ def screen_rows(
                 break
         return flags, scale, done, converged, r, coef
 
+    def forward(keep, scale0):
+        """Forward search: grow the kept set from ``keep`` by the excluded samples with
+        the smallest scaled residuals, 2 % of the samples at a time, refitting after
+        each, until 90 % are in; return the samples explained (residual within the
+        bound at ``scale0``) by the step whose model explained most."""
+        keep = keep.copy()
+        step = max(p, int(np.ceil(_COMPETE_MARGIN * m)))
+        best, best_n = keep.copy(), -1
+        for _ in range(50):
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ConvergenceWarning)
+                delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
+                coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
+            r = y - theta @ coef
+            r = r - np.median(r[keep], axis=0)
+            z = (np.abs(r) / (cutoff * bound_of(r, scale0, coef))).max(axis=1)
+            n_ok = int((z <= 1).sum())
+            if n_ok > best_n:
+                best, best_n = z <= 1, n_ok
+            out = np.flatnonzero(~keep)
+            if out.size == 0 or keep.mean() > 0.9:
+                break
+            keep[out[np.argsort(z[out])[:step]]] = True
+        return best
+
     flags, scale, done_rounds, converged, r, coef = iterate(keep)
     restarted = False
     if (
@@ -636,17 +664,19 @@ def screen_rows(
     ):
         # The start may have left out the samples that excite some library directions
         # (a fast excursion the temporal screen could not follow); then its pilot
-        # extrapolates there and keeps flagging good samples.  A second iteration from
-        # every sample competes: the one whose model explains more samples at the
-        # smaller of the two noise scales wins, by more than 2 % of the samples (a
+        # extrapolates there and keeps flagging good samples.  Two more iterations
+        # compete, one from every sample and one from a forward search that grows the
+        # kept set from the first one's: the one whose model explains most samples at
+        # the smallest of the noise scales wins, by more than 2 % of the samples (a
         # pilot bent by gross errors has a larger scale and explains fewer).
-        other = iterate(np.ones(m, dtype=bool))
-        common = np.minimum(scale, other[1])
+        cands = [iterate(np.ones(m, dtype=bool)), iterate(forward(~flags, scale))]
+        common = np.minimum.reduce([scale] + [c[1] for c in cands])
         explained = [
             int((np.abs(rr) <= cutoff * bound_of(rr, common, cc)).all(axis=1).sum())
-            for rr, cc in ((r, coef), (other[4], other[5]))
+            for rr, cc in [(r, coef)] + [(c[4], c[5]) for c in cands]
         ]
-        if explained[1] - explained[0] > _COMPETE_MARGIN * m:
-            flags, scale, done_rounds, converged = other[:4]
+        best = int(np.argmax(explained))
+        if best > 0 and explained[best] - explained[0] > _COMPETE_MARGIN * m:
+            flags, scale, done_rounds, converged = cands[best - 1][:4]
             restarted = True
     return Screening(flags, scale, scale / rms, first, done_rounds, converged, restarted)
