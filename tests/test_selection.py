@@ -205,7 +205,6 @@ def test_a_start_that_misses_an_excursion_is_overruled(seed):
     assert s.outliers[~np.isin(np.arange(y.size), bad)].mean() <= 0.02
 
 
-
 @pytest.mark.parametrize("seed", range(3))
 def test_a_forward_search_reaches_the_excursion_before_high_leverage_outliers(seed):
     # 10 % of the samples have both states off by 30 times their range: a pilot on
@@ -223,6 +222,7 @@ def test_a_forward_search_reaches_the_excursion_before_high_leverage_outliers(se
     assert s.restarted
     assert s.outliers[bad].mean() >= 0.98
     assert s.outliers[~bad].mean() <= 0.02
+
 
 def test_noise_columns_must_match_the_library():
     theta, y, noise, _ = _steep_problem(0)
