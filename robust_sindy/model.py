@@ -846,7 +846,7 @@ class HuberSINDy(BaseEstimator):
         options = dict(self.solver_options or {})
         huber_method = self.method if self.method in ("admm", "cvxpy") else "admm"
         keep = np.ones(m, dtype=bool)
-        noise_all = self._noise_columns(z, keep)
+        noise_all = self._noise_columns(z)
         self.screening_ = None
         if self.screen:
             self.screening_ = screen_rows(
@@ -1164,15 +1164,15 @@ class HuberSINDy(BaseEstimator):
                 )
         return unstable.T
 
-    def _noise_columns(self, z, keep) -> list[np.ndarray] | None:
+    def _noise_columns(self, z) -> list[np.ndarray] | None:
         """The noise of each state carried through the standardised library, first
-        order, on the kept samples: ``sigma_k dTheta/dx_k / theta_scale`` per state
-        ``k`` (``sigma_k`` measured by the temporal screen); None without it."""
+        order, at every sample: ``sigma_k dTheta/dx_k / theta_scale`` per state ``k``
+        (``sigma_k`` measured by the temporal screen); None without it."""
         if self.temporal_ is None or not np.all(np.isfinite(self.temporal_.scale)):
             return None
-        base = z[keep].copy()
+        base = z.copy()
         n = self.temporal_.scale.size
-        base[:, :n] = self.temporal_.repaired[keep]
+        base[:, :n] = self.temporal_.repaired
         out = []
         for k, sigma in enumerate(self.temporal_.scale):
             step = 1e-4 * max(float(np.sqrt(np.mean(base[:, k] ** 2))), np.finfo(float).tiny)

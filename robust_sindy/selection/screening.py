@@ -608,17 +608,26 @@ def screen_rows(
     # (the final fit of the kept samples is certified on its own).
     budget = pilot_budget(method)
 
+    def pilot(keep):
+        """The unpenalised Huber pilot on ``keep``: coefficients and residuals of every
+        sample, centred on the kept ones' median."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
+            coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
+        r = y - theta @ coef
+        return coef, r - np.median(r[keep], axis=0)
+
+    def scaled(r, scale, coef):
+        """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
+        return (np.abs(r) / (cutoff * bound_of(r, scale, coef))).max(axis=1)
+
     def iterate(keep):
         flags, converged, done, scale = None, False, 0, np.zeros(y.shape[1])
         for done in range(1, rounds + 1):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ConvergenceWarning)
-                delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
-                coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
-            r = y - theta @ coef
-            r = r - np.median(r[keep], axis=0)
+            coef, r = pilot(keep)
             scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), _SCALE_FLOOR * rms)
-            new = (np.abs(r) > cutoff * bound_of(r, scale, coef)).any(axis=1)
+            new = scaled(r, scale, coef) > 1
             if flags is not None and done > _FREE_ROUNDS:
                 new |= flags  # past the free rounds flags are only added: no oscillation
             if flags is not None and np.array_equal(new, flags):
@@ -639,13 +648,8 @@ def screen_rows(
         step = max(p, int(np.ceil(_COMPETE_MARGIN * m)))
         best, best_n = keep.copy(), -1
         for _ in range(50):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ConvergenceWarning)
-                delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
-                coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
-            r = y - theta @ coef
-            r = r - np.median(r[keep], axis=0)
-            z = (np.abs(r) / (cutoff * bound_of(r, scale0, coef))).max(axis=1)
+            coef, r = pilot(keep)
+            z = scaled(r, scale0, coef)
             n_ok = int((z <= 1).sum())
             if n_ok > best_n:
                 best, best_n = z <= 1, n_ok
@@ -672,7 +676,7 @@ def screen_rows(
         cands = [iterate(np.ones(m, dtype=bool)), iterate(forward(~flags, scale))]
         common = np.minimum.reduce([scale] + [c[1] for c in cands])
         explained = [
-            int((np.abs(rr) <= cutoff * bound_of(rr, common, cc)).all(axis=1).sum())
+            int((scaled(rr, common, cc) <= 1).sum())
             for rr, cc in [(r, coef)] + [(c[4], c[5]) for c in cands]
         ]
         best = int(np.argmax(explained))
