@@ -207,3 +207,15 @@ def test_shared_window_inverses_give_the_general_fit():
     x[rng.choice(t.size, 60, replace=False)] += 1.0
     jittered = t + 1e-7 * rng.uniform(size=t.size)
     assert np.allclose(_lts_fitted(x, t), _lts_fitted(x, jittered), atol=1e-6)
+
+
+@pytest.mark.parametrize("m", [1, 2, 5, 8, 9, 40, 41, 42, 300])
+def test_local_scale_is_the_windowed_median_shifted_inside_at_the_ends(m):
+    from robust_sindy.selection.screening import local_scale
+
+    a = np.random.default_rng(m).standard_t(2, size=(m, 3))
+    for h in (1, 4, 20):
+        w = min(2 * h + 1, m)
+        start = np.clip(np.arange(m) - h, 0, m - w)
+        expected = np.array([np.median(np.abs(a[s : s + w]), axis=0) for s in start])
+        assert np.array_equal(local_scale(a, h), 1.4826 * expected)

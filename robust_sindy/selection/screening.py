@@ -100,6 +100,14 @@ def local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
     a = np.abs(np.asarray(values, dtype=float))
     m = a.shape[0]
     w = min(2 * half_width + 1, m)
+    if w % 2 and a.ndim == 2 and not np.isnan(a).any():
+        # Odd windows without NaN: the running median of each column (the same middle
+        # value), the windows at the ends shifted inside.
+        med = _running_median(a, w)
+        h = w // 2
+        med[:h] = np.median(a[:w], axis=0)
+        med[m - h :] = np.median(a[m - w :], axis=0)
+        return 1.4826 * med
     start = np.clip(np.arange(m) - half_width, 0, m - w)
     windows = np.lib.stride_tricks.sliding_window_view(a, w, axis=0)  # (m - w + 1, n, w)
     if np.isnan(a).any():
@@ -132,6 +140,16 @@ def smooth_local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
     scale = local_scale(a, half_width)
     rough = local_scale(np.diff(a, axis=0, prepend=a[:1]), half_width)
     return np.where(rough < _SMOOTH_RATIO * scale, scale, 0.0)
+
+
+def _running_median(a: np.ndarray, size: int) -> np.ndarray:
+    """Running median of each column of ``a`` (m, n) over ``size`` samples, the ends
+    padded by their nearest value (column by column: the one-dimensional filter is the
+    fast one)."""
+    out = np.empty_like(a)
+    for k in range(a.shape[1]):
+        out[:, k] = scipy.ndimage.median_filter(a[:, k], size=size, mode="nearest")
+    return out
 
 
 def _window_max(a: np.ndarray, h: int) -> np.ndarray:
@@ -296,7 +314,7 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
     def gross(err):
         # The running median of the errors is the fit's smooth bias (e.g. along a fast
         # part of the trajectory); an outlier, alone or in a short group, stands out of it.
-        err = err - scipy.ndimage.median_filter(err, size=(_BIAS_WINDOW, 1), mode="nearest")
+        err = err - _running_median(err, _BIAS_WINDOW)
         scale = np.maximum(robust_scale(err), floor)
         return np.abs(err) / (cutoff * np.maximum(scale, smooth_local_scale(err, scale_half)))
 
