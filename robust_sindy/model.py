@@ -138,10 +138,10 @@ class Diagnostics:
         ``SIGNIFICANCE_ESTIMATED`` (10) with estimated ones, whose error the statistic
         leaves out.
     pruned : ndarray (n, p)
-        With estimated derivatives, the robust t of each term the selection chose but
-        the data did not vouch for (below ``significance_level``), when it was dropped
-        (the weakest first, the rest refitted after each, while another term of the
-        equation reaches the bar); NaN for every other term.  A dropped term at
+        The robust t of each term the selection chose but the data did not vouch for
+        (below ``significance_level``), when it was dropped (the weakest first, the
+        rest refitted after each, while another term of the equation reaches
+        ``SIGNIFICANCE_ESTIMATED``); NaN for every other term.  A dropped term at
         ``VISIBLE`` (2) or more may be real: a warning says so.
     aliased : list of str
         Library terms left out of the selection because they are exact linear
@@ -279,10 +279,15 @@ class Diagnostics:
             high = ", ".join(f"{v:.2g}" for v in np.nanmax(self.pruned[seen], axis=1))
             out.append(
                 f"equations {seen.tolist()}: {counts} selected terms were dropped because "
-                f"their robust t was below {self.significance_level:g} (the bar with "
-                f"estimated derivatives), yet at least {VISIBLE:g} (largest {high}): they "
-                "may be real, and these data cannot decide (see diagnostics_.pruned); "
-                "measured derivatives, more data or less noisy states would"
+                f"their robust t was below {self.significance_level:g} (the bar for the "
+                "selected terms), yet at least "
+                f"{VISIBLE:g} (largest {high}): they may be real, and these data cannot "
+                "decide (see diagnostics_.pruned); "
+                + (
+                    "more data or less noisy states would"
+                    if self.significance_level <= SIGNIFICANCE
+                    else "measured derivatives, more data or less noisy states would"
+                )
             )
         close = np.flatnonzero(self.bic_margin < MIN_BIC_MARGIN)
         if close.size:
@@ -368,10 +373,11 @@ class HuberSINDy(BaseEstimator):
        bias that the states' noise can give them through the other terms (errors in
        the variables, :mod:`robust_sindy.selection.bias`) are dropped one at a time
        and the rest refitted (``bias_dropped_``);
-    5. ``lam="auto"`` with estimated derivatives: selected terms whose robust t is
-       below ``SIGNIFICANCE_ESTIMATED`` are dropped, the weakest first, the rest
-       refitted after each, in every equation with a term that reaches it
-       (``pruned_``; a warning when a dropped term reached t 2).
+    5. ``lam="auto"``: selected terms whose robust t is below the bar
+       (``SIGNIFICANCE``, or ``SIGNIFICANCE_ESTIMATED`` with estimated derivatives) are
+       dropped, the weakest first, the rest refitted after each, in every equation with
+       a term at ``SIGNIFICANCE_ESTIMATED`` or more (``pruned_``; a warning when a
+       dropped term reached t 2).
 
     Fixed values turn each step into the plain estimator (``screen=False``,
     ``delta=1.0, lam=1.0`` is the paper's).  ``threshold`` and ``refit`` then act on
@@ -478,8 +484,8 @@ class HuberSINDy(BaseEstimator):
     significance_ : ndarray, shape (n_targets, n_features)
         Robust t statistic of each selected term (see :class:`Diagnostics`).
     pruned_ : ndarray, shape (n_targets, n_features)
-        With estimated derivatives and ``lam="auto"``, the robust t at which each term
-        dropped below the bar was dropped; NaN elsewhere (see :class:`Diagnostics`).
+        With ``lam="auto"``, the robust t at which each term dropped below the bar was
+        dropped; NaN elsewhere (see :class:`Diagnostics`).
     aliased_ : ndarray of bool, shape (n_features,)
         Library terms left out of the selection as exact linear combinations of earlier
         ones on the kept samples (``lam="auto"`` only; see :class:`Diagnostics`).
@@ -942,25 +948,16 @@ class HuberSINDy(BaseEstimator):
             # the chosen support is refitted here in user units with the full one.
             coef = self._refit(theta[keep], y[keep], coef, options)
         ratio = np.full(coef.shape, np.nan)
+        pruned = np.full(coef.shape, np.nan)
         delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
         if self.selection_ is not None:
+            kept = (theta[keep], y[keep], th, yk)  # user units, then standardised
+            segments = _segments_of(keep, xs)
             coef, ratio = self._final_selection(
-                theta[keep],
-                y[keep],
-                th,
-                yk,
-                coef,
-                delta_s,
-                noise,
-                huber_method,
-                options,
-                _segments_of(keep, xs) if measured else None,
+                *kept, coef, delta_s, noise, huber_method, options, segments if measured else None
             )
-        pruned = np.full(coef.shape, np.nan)
-        if self.selection_ is not None and not measured:
-            coef, pruned = self._prune(
-                theta[keep], y[keep], th, yk, coef, delta_s, options, _segments_of(keep, xs)
-            )
+            bar = SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED
+            coef, pruned = self._prune(*kept, coef, delta_s, options, segments, bar)
         self.pruned_ = np.ascontiguousarray(pruned.T)
         self.bias_ratio_ = np.ascontiguousarray(ratio.T)
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
@@ -1107,15 +1104,18 @@ class HuberSINDy(BaseEstimator):
                 break
         return coef, ratio
 
-    def _prune(self, theta, y, th, yk, coef, delta_s, options, segments):
-        """Estimated derivatives: drop the selected term with the smallest robust t
-        while it is below ``SIGNIFICANCE_ESTIMATED``, per equation, refitting after each
-        round.  The selection's criterion counts every sample as independent evidence,
-        while the errors of estimated derivatives are smooth in time and shared with
-        the library: terms it admits that the data do not vouch for are fitted to those
-        errors.  An equation none of whose terms reaches the bar is left as selected
-        (the data vouch for no version of it, and a warning says so).  Returns the
-        coefficients and the t of each dropped term (NaN elsewhere)."""
+    def _prune(self, theta, y, th, yk, coef, delta_s, options, segments, bar):
+        """Drop the selected term with the smallest robust t while it is below ``bar``,
+        per equation, refitting after each round.  The selection's criterion reads the
+        likelihood as if the residuals were the model's only error; the sandwich
+        statistic also sees the errors it leaves out (noise in the library columns
+        reaching the fit through high-leverage rows, heavy tails, and with estimated
+        derivatives their smooth errors shared with the library), and terms the
+        criterion admits that the data do not vouch for are fitted to those errors.
+        Only equations with a term at ``SIGNIFICANCE_ESTIMATED`` or more are pruned: an
+        equation none of whose terms is that clear is left as selected (the data vouch
+        for no version of it, and a warning says so).  Returns the coefficients and the
+        t of each dropped term (NaN elsewhere)."""
         scaler = self.standardizer_
         pruned = np.full(coef.shape, np.nan)
         for _ in range(coef.shape[0]):
@@ -1123,7 +1123,7 @@ class HuberSINDy(BaseEstimator):
             tstat = np.where(coef != 0, np.nan_to_num(tstat, nan=np.inf), np.inf)
             weakest = np.argmin(tstat, axis=0)
             vouched = np.where(coef != 0, tstat, 0.0).max(axis=0) >= SIGNIFICANCE_ESTIMATED
-            low = tstat[weakest, np.arange(coef.shape[1])] < SIGNIFICANCE_ESTIMATED
+            low = tstat[weakest, np.arange(coef.shape[1])] < bar
             cols = np.flatnonzero(low & vouched)
             if cols.size == 0:
                 break

@@ -216,3 +216,28 @@ def test_a_dropped_term_the_data_see_is_reported():
         assert len(found) == int(reported)
         if reported:
             assert found[0].startswith("equations [1]: 1 selected terms") and "3.5" in found[0]
+
+
+def test_measured_derivatives_drop_the_terms_the_data_do_not_vouch_for():
+    # Chen, Student-t (3 dof) state noise of 0.5 % of each state's spread, measured
+    # derivatives: the criterion admits x1*x2 in (x1)' at robust t 2.9 beside terms at
+    # t > 10; it is dropped, the support is right, and a warning says it may be real
+    # (without advising measured derivatives: they are).
+    from robust_sindy import zoo
+    from robust_sindy.selection.significance import VISIBLE
+
+    system = {s.name: s for s in zoo.polynomial_systems()}["Chen"]
+    params = zoo.Contamination(heavy_dof=3.0, heavy_scale=0.005)
+    rng = np.random.default_rng([4, zoo.FAMILIES.index("heavy"), 0])
+    t, x, x_dot = zoo.simulate_system(system, 2000, 4)
+    noisy, _ = zoo.contaminate_family(x, "heavy", rng, params)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(noisy, t, x_dot=x_dot)
+    assert np.array_equal(model.support_, system.coef.T != 0)
+    dropped = np.isfinite(model.pruned_)
+    assert dropped.sum() == 1 and not (dropped & model.support_).any()
+    assert VISIBLE <= model.pruned_[dropped][0] < SIGNIFICANCE
+    messages = [str(w.message) for w in caught]
+    (message,) = [m for m in messages if "were dropped because their robust t" in m]
+    assert "below 5" in message and "measured derivatives" not in message

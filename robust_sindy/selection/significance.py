@@ -38,9 +38,10 @@ SIGNIFICANCE = 5.0
 SIGNIFICANCE_ESTIMATED = 10.0
 
 #: Robust t statistic below which the data do not see a term at all (two standard
-#: errors: its coefficient is indistinguishable from zero at the usual 95 %).  With
-#: estimated derivatives, terms below ``SIGNIFICANCE_ESTIMATED`` are dropped one at a
-#: time; a dropped term that reached this level may be real, and a warning says so.
+#: errors: its coefficient is indistinguishable from zero at the usual 95 %).  Selected
+#: terms below the bar (``SIGNIFICANCE``, ``SIGNIFICANCE_ESTIMATED`` with estimated
+#: derivatives) are dropped one at a time; a dropped term that reached this level may
+#: be real, and a warning says so.
 VISIBLE = 2.0
 
 
