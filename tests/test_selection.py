@@ -153,6 +153,53 @@ def test_screen_flags_nothing_on_clean_data():
     assert not screen_rows(theta, data.x_dot).outliers.any()
 
 
+def test_deleted_residuals_of_suspect_samples():
+    # One state of one sample off by 2.5 (5 times its amplitude) puts that sample far
+    # out in a cubic library, where a fit with ten coefficients has nothing else to go
+    # by: it fits the sample (leverage near 1, a small residual).  The residual it
+    # would have without the sample in the fit is gross; samples not suspect keep their
+    # plain residuals.
+    from robust_sindy.selection.screening import _deleted
+
+    rng = np.random.default_rng(0)
+    t = np.linspace(0.0, 20.0, 800)
+    x = np.column_stack([np.cos(t), 0.5 * np.sin(t)])
+    x_dot = np.column_stack([-np.sin(t), 0.5 * np.cos(t)])
+    noisy = x + 1e-3 * rng.normal(size=x.shape)
+    noisy[400, 1] += 2.5
+    theta = PolynomialLibrary(degree=3).fit(noisy).transform(noisy)
+    coef = np.linalg.lstsq(theta, x_dot, rcond=None)[0]
+    r = x_dot - theta @ coef
+    keep = np.ones(800, dtype=bool)
+    suspect = np.zeros(800, dtype=bool)
+    suspect[[100, 400]] = True
+    out = _deleted(theta, r, keep, np.full(2, np.inf), suspect)
+    plain = np.linalg.lstsq(np.delete(theta, 400, 0), np.delete(x_dot, 400, 0), rcond=None)[0]
+    assert np.allclose(out[400], (x_dot - theta @ plain)[400], rtol=1e-3)
+    assert np.abs(out[400]).max() > 1e3 * np.abs(r[400]).max()
+    assert np.array_equal(np.delete(out, [100, 400], 0), np.delete(r, [100, 400], 0))
+    assert np.allclose(out[100], r[100], rtol=0.05)  # a good sample: leverage ~ p / m
+
+
+def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():
+    # KawczynskiStrizhak, 800 samples, 2 % of the entries spiked by 3 to 5 times the
+    # state's spread, measured derivatives (a held-out setting): the competing
+    # iteration from every sample starts with a spiked sample far out in the cubic
+    # library and bends to fit it; judged by its deleted residual, it is left out.
+    from robust_sindy import zoo
+
+    system = {s.name: s for s in zoo.polynomial_systems()}["KawczynskiStrizhak"]
+    params = zoo.Contamination(base_noise=2e-3, spikes_fraction=0.02, spikes_range=(3.0, 5.0))
+    rng = np.random.default_rng([6, zoo.FAMILIES.index("spikes"), 0])
+    t, x, x_dot = zoo.simulate_system(system, 800, 6)
+    noisy, bad = zoo.contaminate_family(x, "spikes", rng, params)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = HuberSINDy(library=PolynomialLibrary(degree=3)).fit(noisy, t, x_dot=x_dot)
+    assert np.all(model.screened_[bad.any(axis=1)])
+    assert np.array_equal(model.support_, system.coef.T != 0)
+
+
 def _steep_problem(seed, m=1500, sigma=1e-3):
     """x' = -x^3 observed with noisy states, most samples near 0 (a trajectory that
     rests and makes excursions): the residuals the state noise gives grow as

@@ -486,6 +486,33 @@ class Screening:
         )
 
 
+def _deleted(theta, r, keep, delta, suspect) -> np.ndarray:
+    """Residuals ``r`` (m, n) of a Huber fit on the samples ``keep``, those of the kept
+    inliers (``|r| <= delta``) that are ``suspect`` divided by ``1 - h_i``, their
+    leverage in the fit (``h_i = theta_i H^+ theta_i^T``, ``H`` the Gram matrix of the
+    inliers): the residual the sample would have if the fit had not seen it.
+
+    A gross error in the states puts its sample far out in library space, where the fit
+    has nothing else to go by and bends to it (``h_i`` near 1, a small residual): a
+    sample with independent evidence against it (the temporal screen flagged it) is
+    vouched for only by a model fitted without it.  The others keep their plain
+    residual: with few samples per term, good samples have large leverage too."""
+    out = r.copy()
+    if not (keep & suspect).any():
+        return out
+    for k in range(r.shape[1]):
+        inl = keep & (np.abs(r[:, k]) <= delta[k])
+        judged = inl & suspect
+        if not judged.any():
+            continue
+        a = theta[inl]
+        lev = np.einsum(
+            "ij,ji->i", theta[judged], np.linalg.pinv(a.T @ a, hermitian=True) @ theta[judged].T
+        )
+        out[judged, k] = r[judged, k] / np.maximum(1.0 - lev, np.finfo(float).eps)
+    return out
+
+
 def _excitation_gain(theta: np.ndarray, start: np.ndarray) -> float:
     """Largest ratio, over directions ``v`` of the library, of ``|theta v|^2`` per sample
     on all samples to the same on the ``start`` samples (a generalised eigenvalue;
@@ -532,7 +559,10 @@ def screen_rows(
        the temporal screen left alone);
     2. measure each equation's robust residual scale ``s_k`` on the kept samples (at
        least ``1e-4`` of the target's root mean square);
-    3. flag a sample when its residual is more than ``cutoff`` times the larger of
+    3. flag a sample when its residual (for a sample outside ``start`` that is in the
+       fit, the deleted residual ``r_i / (1 - h_i)``, ``h_i`` its leverage among the
+       inliers: a gross error far out in library space bends an unpenalised pilot to
+       fit it) is more than ``cutoff`` times the larger of
        ``s_k`` and the local robust scale of the residuals within ``scale_window``
        samples of the same trajectory (when ``segments`` are given; residuals that grow
        smoothly along a fast part of the trajectory are not outliers) in any equation;
@@ -561,7 +591,7 @@ def screen_rows(
     theta : array_like, shape (m, p)
     xdot : array_like, shape (m,) or (m, n)
     start : array_like of bool (m,), optional
-        Samples of the first pilot.
+        Samples of the first pilot; the others are suspect (step 3).
     segments : list of slice, optional
         The samples of each trajectory, in time order (enables the local scale).
     cutoff : float
@@ -628,13 +658,15 @@ def screen_rows(
 
     def pilot(keep):
         """The unpenalised Huber pilot on ``keep``: coefficients and residuals of every
-        sample, centred on the kept ones' median."""
+        sample, centred on the kept ones' median, those of the kept samples deleted
+        (:func:`_deleted`)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
             coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
         r = y - theta @ coef
-        return coef, r - np.median(r[keep], axis=0)
+        r = r - np.median(r[keep], axis=0)
+        return coef, _deleted(theta, r, keep, delta, ~first)
 
     def scaled(r, scale, coef):
         """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
