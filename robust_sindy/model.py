@@ -1112,24 +1112,40 @@ class HuberSINDy(BaseEstimator):
         reaching the fit through high-leverage rows, heavy tails, and with estimated
         derivatives their smooth errors shared with the library), and terms the
         criterion admits that the data do not vouch for are fitted to those errors.
-        Only equations with a term at ``SIGNIFICANCE_ESTIMATED`` or more are pruned: an
-        equation none of whose terms is that clear is left as selected (the data vouch
-        for no version of it, and a warning says so).  Returns the coefficients and the
-        t of each dropped term (NaN elsewhere)."""
+        Only equations with a term at ``SIGNIFICANCE_ESTIMATED`` or more are pruned, and
+        only while they keep one: an equation none of whose terms is that clear is left
+        as selected (the data vouch for no version of it, and a warning says so), and a
+        drop after which no term is that clear any more is undone (the dropped term was
+        carrying the equation).  Returns the coefficients and the t of each dropped term
+        (NaN elsewhere)."""
         scaler = self.standardizer_
         pruned = np.full(coef.shape, np.nan)
+        cols_all = np.arange(coef.shape[1])
+
+        def t_of(coef):
+            t = robust_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
+            return np.where(coef != 0, np.nan_to_num(t, nan=np.inf), np.inf)
+
+        def vouched(t, coef):
+            return np.where(coef != 0, t, 0.0).max(axis=0) >= SIGNIFICANCE_ESTIMATED
+
+        tstat = t_of(coef)
+        done = np.zeros(coef.shape[1], dtype=bool)
         for _ in range(coef.shape[0]):
-            tstat = robust_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
-            tstat = np.where(coef != 0, np.nan_to_num(tstat, nan=np.inf), np.inf)
             weakest = np.argmin(tstat, axis=0)
-            vouched = np.where(coef != 0, tstat, 0.0).max(axis=0) >= SIGNIFICANCE_ESTIMATED
-            low = tstat[weakest, np.arange(coef.shape[1])] < bar
-            cols = np.flatnonzero(low & vouched)
+            low = tstat[weakest, cols_all] < bar
+            cols = np.flatnonzero(low & vouched(tstat, coef) & ~done)
             if cols.size == 0:
                 break
+            before, t_before = coef.copy(), tstat
             pruned[weakest[cols], cols] = tstat[weakest[cols], cols]
             coef[weakest[cols], cols] = 0.0
             coef = self._refit(theta, y, coef, options)
+            tstat = t_of(coef)
+            lost = cols[~vouched(tstat, coef)[cols]]
+            coef[:, lost], tstat[:, lost] = before[:, lost], t_before[:, lost]
+            pruned[weakest[lost], lost] = np.nan
+            done[lost] = True
         return coef, pruned
 
     def _stability(self, theta_kept, y_kept) -> np.ndarray:

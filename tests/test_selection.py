@@ -157,8 +157,8 @@ def test_deleted_residuals_of_suspect_samples():
     # One state of one sample off by 2.5 (5 times its amplitude) puts that sample far
     # out in a cubic library, where a fit with ten coefficients has nothing else to go
     # by: it fits the sample (leverage near 1, a small residual).  The residual it
-    # would have without the sample in the fit is gross; samples not suspect keep their
-    # plain residuals.
+    # would have without the sample in the fit is gross; the others are studentised,
+    # by sqrt(1 - h), a few percent at p / m = 10 / 800.
     from robust_sindy.selection.screening import _deleted
 
     rng = np.random.default_rng(0)
@@ -177,8 +177,11 @@ def test_deleted_residuals_of_suspect_samples():
     plain = np.linalg.lstsq(np.delete(theta, 400, 0), np.delete(x_dot, 400, 0), rcond=None)[0]
     assert np.allclose(out[400], (x_dot - theta @ plain)[400], rtol=1e-3)
     assert np.abs(out[400]).max() > 1e3 * np.abs(r[400]).max()
-    assert np.array_equal(np.delete(out, [100, 400], 0), np.delete(r, [100, 400], 0))
+    ratio = np.delete(out / r, [100, 400], 0)
+    assert np.all((ratio >= 1.0) & (ratio < 1.1))
     assert np.allclose(out[100], r[100], rtol=0.05)  # a good sample: leverage ~ p / m
+    out2 = _deleted(theta, r, keep, np.full(2, np.inf), np.zeros(800, dtype=bool))
+    assert np.abs(out2[400]).max() < 1e-2 * np.abs(out[400]).max()  # studentised only
 
 
 def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():

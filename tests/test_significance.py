@@ -241,3 +241,28 @@ def test_measured_derivatives_drop_the_terms_the_data_do_not_vouch_for():
     messages = [str(w.message) for w in caught]
     (message,) = [m for m in messages if "were dropped because their robust t" in m]
     assert "below 5" in message and "measured derivatives" not in message
+
+
+def test_a_drop_that_leaves_no_clear_term_is_undone():
+    # The 21 lynx-hare samples (estimated derivatives): in the hare equation
+    # hare*lynx reaches robust t 10 beside hare at 8.3; dropping hare leaves hare*lynx
+    # at t 2.5, no term the data vouch for, so the drop is undone and the equation
+    # keeps its Lotka-Volterra form a hare - b hare*lynx (with a warning that hare does
+    # not reach the bar).
+    from robust_sindy.datasets import load_lynx_hare
+    from robust_sindy.selection.significance import SIGNIFICANCE_ESTIMATED
+
+    data = load_lynx_hare()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(
+            data.x, data.t, feature_names=data.names
+        )
+    names = model.get_feature_names()
+    hare = [names[j] for j in np.flatnonzero(model.support_[0])]
+    assert hare == ["hare", "hare*lynx"]
+    assert model.coef_[0, names.index("hare")] > 0 > model.coef_[0, names.index("hare*lynx")]
+    assert not np.isfinite(model.pruned_[0]).any()
+    t = model.significance_[0]
+    assert t[names.index("hare")] < SIGNIFICANCE_ESTIMATED <= t[names.index("hare*lynx")]
+    assert model.diagnostics_.weak[0].any()

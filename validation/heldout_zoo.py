@@ -1,7 +1,7 @@
 """Held-out check of the zoo: another seed, other contamination parameters.
 
 The zoo table (``robust-sindy zoo``) uses seed 0 and one set of contamination
-parameters.  This check draws 16 of its systems at random (generator seed 2026), uses
+parameters.  This check draws 16 of its systems at random (generator seed 2026, ``--draw``), uses
 seed 3 and different parameters for every family, and compares ``HuberSINDy()`` with
 PySINDy's STLSQ given the same data:
 
@@ -14,7 +14,8 @@ PySINDy's STLSQ given the same data:
 
 Writes ``heldout.csv`` and ``heldout.md`` to the output folder.
 
-    python validation/heldout_zoo.py [--systems 16] [--out validation/results/heldout]
+    python validation/heldout_zoo.py [--systems 16] [--seed 3] [--draw 2026]
+    [--samples 2000] [--out validation/results/heldout]
 """
 
 import argparse
@@ -42,11 +43,11 @@ HELDOUT = zoo.Contamination(
 )
 
 
-def _case(system, family, derivatives, seed):
+def _case(system, family, derivatives, seed, samples):
     try:
         return zoo.run_case(
             system, family, derivatives, seed, methods=("huber", "stlsq"),
-            contamination=HELDOUT,
+            n_samples=samples, contamination=HELDOUT,
         )  # fmt: skip
     except RuntimeError:  # an integration that fails is left out, as in the zoo
         return []
@@ -56,12 +57,17 @@ def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--systems", type=int, default=16)
     parser.add_argument("--seed", type=int, default=3)
+    parser.add_argument("--draw", type=int, default=2026, help="seed of the systems' draw")
+    parser.add_argument("--samples", type=int, default=2000, help="samples per trajectory")
     parser.add_argument("--out", default="validation/results/heldout")
     args = parser.parse_args(argv)
     systems = zoo.polynomial_systems()
-    pick = np.random.default_rng(2026).choice(len(systems), args.systems, replace=False)
+    pick = np.random.default_rng(args.draw).choice(len(systems), args.systems, replace=False)
     cases = [
-        (systems[i], f, d, args.seed) for i in pick for f in zoo.FAMILIES for d in zoo.DERIVATIVES
+        (systems[i], f, d, args.seed, args.samples)
+        for i in pick
+        for f in zoo.FAMILIES
+        for d in zoo.DERIVATIVES
     ]
     rows = [r for rr in Parallel(n_jobs=2)(delayed(_case)(*c) for c in cases) for r in rr]
     df = pd.DataFrame(rows)
@@ -76,7 +82,8 @@ def main(argv=None):
         "# Held-out zoo check",
         "",
         f"Command: `python validation/heldout_zoo.py --systems {args.systems} "
-        f"--seed {args.seed}`. Systems: {', '.join(sorted(df.system.unique()))}. "
+        f"--seed {args.seed} --draw {args.draw} --samples {args.samples}`. "
+        f"Systems: {', '.join(sorted(df.system.unique()))}. "
         "Contamination parameters: see the script's docstring. Cells: exact-support rate.",
         "",
         "| family | derivatives | huber | stlsq |",

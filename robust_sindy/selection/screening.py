@@ -488,28 +488,25 @@ class Screening:
 
 def _deleted(theta, r, keep, delta, suspect) -> np.ndarray:
     """Residuals ``r`` (m, n) of a Huber fit on the samples ``keep``, those of the kept
-    inliers (``|r| <= delta``) that are ``suspect`` divided by ``1 - h_i``, their
-    leverage in the fit (``h_i = theta_i H^+ theta_i^T``, ``H`` the Gram matrix of the
-    inliers): the residual the sample would have if the fit had not seen it.
+    inliers (``|r| <= delta``) divided by ``sqrt(1 - h_i)`` (studentised), or by
+    ``1 - h_i`` (deleted: the residual the sample would have if the fit had not seen
+    it) where ``suspect``; ``h_i = theta_i H^+ theta_i^T`` is the sample's leverage,
+    ``H`` the Gram matrix of the inliers.
 
-    A gross error in the states puts its sample far out in library space, where the fit
-    has nothing else to go by and bends to it (``h_i`` near 1, a small residual): a
-    sample with independent evidence against it (the temporal screen flagged it) is
-    vouched for only by a model fitted without it.  The others keep their plain
-    residual: with few samples per term, good samples have large leverage too."""
+    A studentised residual of a good sample has the spread of the noise whatever the
+    sample's leverage.  A gross error in the states puts its sample far out in library
+    space, where the fit has nothing else to go by and bends to it (``h_i`` near 1, a
+    small residual, even studentised): a sample with independent evidence against it
+    (the temporal screen flagged it) is vouched for only by a model fitted without it.
+    Deleted residuals for every sample would be too strict where there are few samples
+    per term, whose good samples all have large leverage."""
     out = r.copy()
-    if not (keep & suspect).any():
-        return out
     for k in range(r.shape[1]):
         inl = keep & (np.abs(r[:, k]) <= delta[k])
-        judged = inl & suspect
-        if not judged.any():
-            continue
         a = theta[inl]
-        lev = np.einsum(
-            "ij,ji->i", theta[judged], np.linalg.pinv(a.T @ a, hermitian=True) @ theta[judged].T
-        )
-        out[judged, k] = r[judged, k] / np.maximum(1.0 - lev, np.finfo(float).eps)
+        lev = np.einsum("ij,ji->i", a, np.linalg.pinv(a.T @ a, hermitian=True) @ a.T)
+        rest = np.maximum(1.0 - lev, np.finfo(float).eps)
+        out[inl, k] = r[inl, k] / np.where(suspect[inl], rest, np.sqrt(rest))
     return out
 
 
@@ -559,10 +556,11 @@ def screen_rows(
        the temporal screen left alone);
     2. measure each equation's robust residual scale ``s_k`` on the kept samples (at
        least ``1e-4`` of the target's root mean square);
-    3. flag a sample when its residual (for a sample outside ``start`` that is in the
-       fit, the deleted residual ``r_i / (1 - h_i)``, ``h_i`` its leverage among the
-       inliers: a gross error far out in library space bends an unpenalised pilot to
-       fit it) is more than ``cutoff`` times the larger of
+    3. flag a sample when its residual (for the samples in the fit, studentised by
+       their leverage ``h_i`` among the inliers, ``r_i / sqrt(1 - h_i)``, and deleted,
+       ``r_i / (1 - h_i)``, for those outside ``start``: a gross error far out in
+       library space bends an unpenalised pilot to fit it) is more than ``cutoff``
+       times the larger of
        ``s_k`` and the local robust scale of the residuals within ``scale_window``
        samples of the same trajectory (when ``segments`` are given; residuals that grow
        smoothly along a fast part of the trajectory are not outliers) in any equation;
