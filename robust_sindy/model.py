@@ -141,7 +141,8 @@ class Diagnostics:
         The robust t of each term the selection chose but the data did not vouch for
         (below ``significance_level``), when it was dropped (the weakest first, the
         rest refitted after each, while another term of the equation reaches
-        ``SIGNIFICANCE_ESTIMATED``); NaN for every other term.  A dropped term at
+        ``SIGNIFICANCE_ESTIMATED``; a drop after which none does is undone); NaN for
+        every other term.  A dropped term at
         ``VISIBLE`` (2) or more may be real: a warning says so.
     aliased : list of str
         Library terms left out of the selection because they are exact linear
@@ -276,18 +277,15 @@ class Diagnostics:
             )
         seen, counts = _equations_with(np.nan_to_num(self.pruned) >= VISIBLE)
         if seen.size:
+            estimated = self.significance_level > SIGNIFICANCE
+            advice = "measured derivatives, " if estimated else ""
             high = ", ".join(f"{v:.2g}" for v in np.nanmax(self.pruned[seen], axis=1))
             out.append(
                 f"equations {seen.tolist()}: {counts} selected terms were dropped because "
                 f"their robust t was below {self.significance_level:g} (the bar for the "
-                "selected terms), yet at least "
-                f"{VISIBLE:g} (largest {high}): they may be real, and these data cannot "
-                "decide (see diagnostics_.pruned); "
-                + (
-                    "more data or less noisy states would"
-                    if self.significance_level <= SIGNIFICANCE
-                    else "measured derivatives, more data or less noisy states would"
-                )
+                f"selected terms), yet at least {VISIBLE:g} (largest {high}): they may be "
+                f"real, and these data cannot decide (see diagnostics_.pruned); {advice}"
+                "more data or less noisy states would"
             )
         close = np.flatnonzero(self.bic_margin < MIN_BIC_MARGIN)
         if close.size:

@@ -153,13 +153,13 @@ def test_screen_flags_nothing_on_clean_data():
     assert not screen_rows(theta, data.x_dot).outliers.any()
 
 
-def test_deleted_residuals_of_suspect_samples():
+def test_leverage_corrected_residuals_deleted_for_suspect_samples():
     # One state of one sample off by 2.5 (5 times its amplitude) puts that sample far
     # out in a cubic library, where a fit with ten coefficients has nothing else to go
     # by: it fits the sample (leverage near 1, a small residual).  The residual it
     # would have without the sample in the fit is gross; the others are studentised,
     # by sqrt(1 - h), a few percent at p / m = 10 / 800.
-    from robust_sindy.selection.screening import _deleted
+    from robust_sindy.selection.screening import _leverage_corrected
 
     rng = np.random.default_rng(0)
     t = np.linspace(0.0, 20.0, 800)
@@ -173,14 +173,14 @@ def test_deleted_residuals_of_suspect_samples():
     keep = np.ones(800, dtype=bool)
     suspect = np.zeros(800, dtype=bool)
     suspect[[100, 400]] = True
-    out = _deleted(theta, r, keep, np.full(2, np.inf), suspect)
+    out = _leverage_corrected(theta, r, keep, np.full(2, np.inf), suspect)
     plain = np.linalg.lstsq(np.delete(theta, 400, 0), np.delete(x_dot, 400, 0), rcond=None)[0]
     assert np.allclose(out[400], (x_dot - theta @ plain)[400], rtol=1e-3)
     assert np.abs(out[400]).max() > 1e3 * np.abs(r[400]).max()
     ratio = np.delete(out / r, [100, 400], 0)
     assert np.all((ratio >= 1.0) & (ratio < 1.1))
     assert np.allclose(out[100], r[100], rtol=0.05)  # a good sample: leverage ~ p / m
-    out2 = _deleted(theta, r, keep, np.full(2, np.inf), np.zeros(800, dtype=bool))
+    out2 = _leverage_corrected(theta, r, keep, np.full(2, np.inf), np.zeros(800, dtype=bool))
     assert np.abs(out2[400]).max() < 1e-2 * np.abs(out[400]).max()  # studentised only
 
 

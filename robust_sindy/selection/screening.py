@@ -486,7 +486,7 @@ class Screening:
         )
 
 
-def _deleted(theta, r, keep, delta, suspect) -> np.ndarray:
+def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
     """Residuals ``r`` (m, n) of a Huber fit on the samples ``keep``, those of the kept
     inliers (``|r| <= delta``) divided by ``sqrt(1 - h_i)`` (studentised), or by
     ``1 - h_i`` (deleted: the residual the sample would have if the fit had not seen
@@ -656,15 +656,15 @@ def screen_rows(
 
     def pilot(keep):
         """The unpenalised Huber pilot on ``keep``: coefficients and residuals of every
-        sample, centred on the kept ones' median, those of the kept samples deleted
-        (:func:`_deleted`)."""
+        sample, centred on the kept ones' median, those of the kept samples corrected for
+        their leverage (:func:`_leverage_corrected`)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
             coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
         r = y - theta @ coef
         r = r - np.median(r[keep], axis=0)
-        return coef, _deleted(theta, r, keep, delta, ~first)
+        return coef, _leverage_corrected(theta, r, keep, delta, ~first)
 
     def scaled(r, scale, coef):
         """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
