@@ -188,7 +188,10 @@ def certify(
     lam = np.broadcast_to(lam, xi.shape)
     if col_norms is None:
         col_norms = column_norms(theta)
-    r = y - theta @ xi
+    # Column-major (m, n) arrays: the elementwise work and the sums over samples run
+    # along contiguous memory.
+    y = np.asfortranarray(y)
+    r = y - ((xi.T @ theta.T).T if isinstance(theta, np.ndarray) else theta @ xi)
     psi = huber_psi(rounding_free(r, y, theta, xi), delta)
     g = theta.T @ psi
     obj = huber(r, delta).sum(axis=0) + (lam * np.abs(xi)).sum(axis=0)

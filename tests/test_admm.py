@@ -205,3 +205,8 @@ def test_exact_line_search_matches_a_fine_scan(seed):
     grid = np.linspace(0, 2 * max(t, 1.0), 20001)
     best = min(phi(g) for g in grid)
     assert phi(t) <= best + 1e-9 * max(1.0, abs(best))
+    # Bounded by any step where the slope is >= 0: the same minimiser.
+    upper = t * (1.0 + rng.uniform(0.0, 2.0))
+    if _slope(upper, r, q, x, d, lam, delta) >= 0:
+        bounded = _line_search(r, q, x, d, lam, delta, upper)
+        assert bounded == pytest.approx(t, rel=1e-9, abs=1e-12)

@@ -29,6 +29,29 @@ def test_inlier_gram_equals_the_gram_of_the_kept_rows(n_out):
         np.testing.assert_allclose(M[k], fresh, rtol=0, atol=1e-12 * np.abs(fresh).max())
 
 
+def test_rank_updated_inlier_grams_agree_with_fresh_ones():
+    # A sequence of inlier sets changing a few rows at a time, some rows huge (whose
+    # updates would leave rounding of their size): every matrix the cache returns
+    # matches the Gram matrix of the kept rows formed afresh.
+    rng = np.random.default_rng(0)
+    A = rng.normal(size=(400, 6)) * np.logspace(0, 2, 6)
+    A[:5] *= 1e6  # gross rows: moving them in or out forces a fresh matrix
+    cache = nw.GramCache()
+    inlier = rng.random((400, 2)) < 0.8
+    for step in range(40):
+        flip = rng.choice(400, size=(int(rng.integers(0, 12)), 2))
+        for k in range(2):
+            inlier[flip[:, k], k] ^= True
+        if step % 10 == 5:  # every gross row leaves, then returns
+            inlier[:5] = step % 20 == 15
+        M = cache.gram(A, A.T @ A, inlier, ["a", "b"])
+        for k in range(2):
+            fresh = A[inlier[:, k]].T @ A[inlier[:, k]]
+            d = np.sqrt(np.diag(fresh))
+            np.testing.assert_allclose(M[k] / np.outer(d, d), fresh / np.outer(d, d), atol=1e-11)
+    assert cache.updates > 0 and cache.fresh > 2  # both ways were taken
+
+
 def test_masked_solve_solves_each_support_block_and_zeroes_the_rest():
     rng = np.random.default_rng(1)
     B = rng.normal(size=(3, 30, 6))

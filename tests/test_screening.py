@@ -186,14 +186,17 @@ def test_derivatives_next_to_masked_entries_keep_their_order():
     assert masked < 5 * plain < 1e-4
 
 
-def test_the_small_cholesky_solver_matches_lapack():
-    from robust_sindy.selection.screening import _spd_solve
+def test_the_small_hankel_cholesky_solver_matches_lapack():
+    from robust_sindy.selection.screening import _hankel_solve
 
     rng = np.random.default_rng(0)
-    a = rng.normal(size=(40, 7, 4, 6))
-    a = a @ np.swapaxes(a, -1, -2) + 1e-3 * np.eye(4)
+    tau = rng.uniform(-1, 1, size=(40, 7, 9))  # sums of powers of 9 times per system
+    mask = rng.random((40, 7, 9)) < 0.7
+    moments = np.einsum("bkj,bkjs->bks", mask, tau[..., None] ** np.arange(7))
+    a = moments[..., np.add.outer(np.arange(4), np.arange(4))] + 1e-3 * np.eye(4)
     b = rng.normal(size=(40, 7, 4))
-    assert np.allclose(_spd_solve(a, b), np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-8)
+    solved = _hankel_solve(moments, b, 1e-3)
+    assert np.allclose(solved, np.linalg.solve(a, b[..., None])[..., 0], rtol=1e-8)
 
 
 def test_shared_window_inverses_give_the_general_fit():
@@ -219,3 +222,29 @@ def test_local_scale_is_the_windowed_median_shifted_inside_at_the_ends(m):
         start = np.clip(np.arange(m) - h, 0, m - w)
         expected = np.array([np.median(np.abs(a[s : s + w]), axis=0) for s in start])
         assert np.array_equal(local_scale(a, h), 1.4826 * expected)
+
+
+@pytest.mark.parametrize("m", [1, 2, 5, 9, 41, 300])
+def test_local_scale_ignores_nan_as_nanmedian_does(m):
+    from robust_sindy.selection.screening import local_scale
+
+    rng = np.random.default_rng(m)
+    a = rng.standard_t(2, size=(m, 3))
+    a[rng.random((m, 3)) < 0.3] = np.nan
+    a[: min(m, 3), 0] = np.nan  # windows with nothing left give 0
+    for h in (1, 4, 20):
+        w = min(2 * h + 1, m)
+        start = np.clip(np.arange(m) - h, 0, m - w)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
+            expected = [np.nanmedian(np.abs(a[s : s + w]), axis=0) for s in start]
+        assert np.array_equal(local_scale(a, h), 1.4826 * np.nan_to_num(np.array(expected)))
+
+
+def test_unique_rows_groups_rows_as_numpy_unique_does():
+    from robust_sindy.selection.screening import _unique_rows
+
+    key = np.random.default_rng(0).integers(-2, 3, size=(2000, 8))
+    first, inverse = _unique_rows(key)
+    assert np.array_equal(key[first][inverse], key)
+    assert first.size == np.unique(key, axis=0).shape[0]

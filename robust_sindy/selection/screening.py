@@ -111,12 +111,26 @@ def local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
     start = np.clip(np.arange(m) - half_width, 0, m - w)
     windows = np.lib.stride_tricks.sliding_window_view(a, w, axis=0)  # (m - w + 1, n, w)
     if np.isnan(a).any():
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", RuntimeWarning)  # all-NaN windows
-            med = np.nan_to_num(np.nanmedian(windows, axis=-1))
+        med = np.empty(windows.shape[:-1])
+        for lo in range(0, med.shape[0], _MEDIAN_ROWS):
+            med[lo : lo + _MEDIAN_ROWS] = _nan_median(windows[lo : lo + _MEDIAN_ROWS])
     else:
         med = np.median(windows, axis=-1)
     return 1.4826 * med[start]
+
+
+_MEDIAN_ROWS = 8192  # windows sorted at a time by _nan_median (bounds its memory)
+
+
+def _nan_median(windows: np.ndarray) -> np.ndarray:
+    """Median over the last axis ignoring NaN (0 where all are NaN): sorted once (NaN
+    sort last), the middle one or two of each window's valid values picked by count."""
+    srt = np.sort(windows, axis=-1)
+    count = np.sum(~np.isnan(windows), axis=-1)
+    lo = np.maximum((count - 1) // 2, 0)[..., None]
+    hi = np.maximum(count // 2, 0)[..., None]
+    pick = np.take_along_axis(srt, lo, -1)[..., 0] + np.take_along_axis(srt, hi, -1)[..., 0]
+    return np.where(count > 0, 0.5 * pick, 0.0)
 
 
 #: Samples of the running median that estimates the smooth bias of a local fit.
@@ -187,13 +201,33 @@ def _loo_predict(x, t, nb, degree):
     tau = np.where(valid, t[idx] - t[:, None], 0.0)
     span = np.abs(tau).max(axis=1, keepdims=True)
     tau = tau / np.where(span > 0, span, 1.0)  # relative time: unit-free
-    v = (tau[..., None] ** np.arange(degree + 1)) * valid[..., None]  # (m, 2h, d+1)
+    # The weights depend only on the pattern of relative times (with uniform sampling,
+    # one pattern for every sample away from the ends and the flagged samples): each
+    # distinct pattern (to 1e-9 of the span) is solved once.
+    key = np.where(valid, np.round(tau * 1e9), np.iinfo(np.int64).min).astype(np.int64)
+    first, inverse = _unique_rows(key)
+    tau_u, valid_u = tau[first], valid[first]
+    v = (tau_u[..., None] ** np.arange(degree + 1)) * valid_u[..., None]  # (u, 2h, d+1)
     gram = np.einsum("mja,mjb->mab", v, v)
     gram += 1e-12 * np.trace(gram, axis1=1, axis2=2)[:, None, None] * np.eye(degree + 1)
     # Row 0 of gram^-1 V^T: the weights of the fitted value at tau = 0.
-    weights = np.linalg.solve(gram, np.swapaxes(v, 1, 2))[:, 0, :]
+    weights = np.linalg.solve(gram, np.swapaxes(v, 1, 2))[:, 0, :][inverse]
     pred = np.einsum("mj,mj->m", weights, x[idx])
     return pred, np.sqrt(1.0 + np.sum(weights**2, axis=1))
+
+
+def _unique_rows(key: np.ndarray):
+    """``(first, inverse)`` of the distinct rows of the integer array ``key`` (m, k):
+    by a hash of each row (one sort of m numbers, not a lexicographic one), checked
+    row by row against the representative (an exact unique on any collision)."""
+    mix = np.random.default_rng(0).integers(1, 2**62, size=key.shape[1]) | 1
+    with np.errstate(over="ignore"):
+        digest = (key * mix).sum(axis=1)  # wraps around: a hash, not a sum
+    _, first, inverse = np.unique(digest, return_index=True, return_inverse=True)
+    inverse = inverse.ravel()
+    if not np.array_equal(key[first][inverse], key):
+        _, first, inverse = np.unique(key, axis=0, return_index=True, return_inverse=True)
+    return first, inverse.ravel()
 
 
 def _errors(x, t, flags, h, degree):
@@ -226,19 +260,21 @@ def _elemental_subsets(w: int, size: int, count: int) -> np.ndarray:
     return np.array(sorted(out))
 
 
-def _spd_solve(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Solve the symmetric positive definite systems ``a x = b`` (..., n, n), (..., n)
-    by a Cholesky factorisation written out over the (small) ``n``: vectorised across
-    the many systems, without a LAPACK call for each."""
-    n = a.shape[-1]
-    a = np.moveaxis(a, (-2, -1), (0, 1))  # (n, n, ...)
+def _hankel_solve(moments: np.ndarray, b: np.ndarray, ridge: float) -> np.ndarray:
+    """Solve ``(H + ridge I) x = b`` for the many small Hankel systems of polynomial
+    least squares, ``H_ij = moments[..., i + j]`` (the sums of ``tau^(i+j)``), by a
+    Cholesky factorisation written out over the (small) order ``n``: vectorised across
+    the systems, without a LAPACK call for each.  ``moments`` (..., 2n - 1), ``b`` (..., n).
+    """
+    n = b.shape[-1]
+    mom = np.moveaxis(moments, -1, 0)
     b = np.moveaxis(b, -1, 0)
     low = [[None] * n for _ in range(n)]
     for j in range(n):
-        diag = a[j, j] - sum(low[j][k] ** 2 for k in range(j))
+        diag = mom[2 * j] + ridge - sum(low[j][k] ** 2 for k in range(j))
         low[j][j] = np.sqrt(np.maximum(diag, np.finfo(float).tiny))
         for i in range(j + 1, n):
-            low[i][j] = (a[i, j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
+            low[i][j] = (mom[i + j] - sum(low[i][k] * low[j][k] for k in range(j))) / low[j][j]
     z = [None] * n
     for i in range(n):
         z[i] = (b[i] - sum(low[i][k] * z[k] for k in range(i))) / low[i][i]
@@ -258,7 +294,6 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
     the fit ignores up to ``w - q`` gross errors in every window, wherever they are."""
     m, h, d = x.size, _LTS_HALF, _LTS_DEGREE
     w = min(2 * h + 1, m)
-    q = (w + d + 2) // 2 + 1
     eye = 1e-12 * np.eye(d + 1)
     subsets = _elemental_subsets(w, d + 1, _LTS_STARTS)
     out = np.empty(m)
@@ -269,43 +304,66 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
         tau = t[idx] - t[i][:, None]
         span = np.abs(tau).max(axis=1, keepdims=True)
         tau = tau / np.where(span > 0, span, 1.0)  # relative time: unit-free
-        v = tau[..., None] ** np.arange(d + 1)  # (b, w, d+1)
         xw = x[idx]  # (b, w)
-        # Elemental fits: in uniformly sampled windows the relative times depend only on
-        # the sample's place in its window, so each place's interpolation matrices are
-        # inverted once.
         place = i - first
         pattern = np.zeros((w, w))
         pattern[place] = tau  # one window per place (any: they agree when uniform)
         if np.abs(tau - pattern[place]).max() <= 1e-9:
-            vp = pattern[..., None] ** np.arange(d + 1)
-            inverse = np.linalg.inv(vp[:, subsets] + eye)  # (w, K, d+1, d+1)
-            coef = np.einsum("bkij,bkj->bki", inverse[place], xw[:, subsets])
+            # Uniformly sampled windows: the relative times depend only on the sample's
+            # place in its window, so the windows of one place share their polynomial
+            # rows and every product below is one matrix product for all of them.
+            for at in np.unique(place):
+                rows = np.flatnonzero(place == at)
+                v = pattern[at][:, None] ** np.arange(d + 1)  # (w, d+1)
+                inverse = np.linalg.inv(v[subsets] + eye)  # (K, d+1, d+1)
+                # The elemental coefficients as one linear map of the window's values.
+                elemental = np.zeros((w, subsets.shape[0], d + 1))
+                for j in range(d + 1):
+                    elemental[subsets[:, j], np.arange(subsets.shape[0])] = inverse[:, :, j]
+                coef = _times(xw[rows, None, :], elemental.reshape(w, -1))
+                c = _concentrate(xw[rows], coef.reshape(rows.size, -1, d + 1), v)
+                out[i[rows]] = c @ v[at]
         else:
+            v = tau[..., None] ** np.arange(d + 1)  # (b, w, d+1)
             coef = np.linalg.solve(v[:, subsets] + eye, xw[:, subsets][..., None])[..., 0]
-        vt = np.swapaxes(v, 1, 2)  # (b, d+1, w)
-        # Outer products of the rows and the rows times the data, so that each
-        # concentration step's normal equations are one product per window.
-        outer = (v[..., :, None] * v[..., None, :]).reshape(i.size, w, -1)  # (b, w, a*a)
-        vx = v * xw[..., None]  # (b, w, a)
-        for step in range(_LTS_STEPS):
-            r2 = (xw[:, None, :] - coef @ vt) ** 2  # (b, K, w)
-            smallest = np.partition(r2, q - 1, axis=-1)
-            if step == 1:  # keep the most promising starts only
-                best = np.argsort(smallest[..., :q].sum(-1), axis=1)[:, :_LTS_KEEP]
-                coef = np.take_along_axis(coef, best[..., None], axis=1)
-                r2 = np.take_along_axis(r2, best[..., None], axis=1)
-                smallest = np.take_along_axis(smallest, best[..., None], axis=1)
-            # The q samples with the smallest residuals (a tie admits one more).
-            mask = (r2 <= smallest[..., q - 1 : q]).astype(float)  # (b, K, w)
-            normal = (mask @ outer).reshape(*mask.shape[:2], d + 1, d + 1)
-            coef = _spd_solve(normal + eye, mask @ vx)
-        r = xw[:, None, :] - coef @ vt
-        obj = np.partition(r**2, q - 1, axis=-1)[..., :q].sum(-1)
-        c = coef[np.arange(i.size), np.argmin(obj, axis=1)]
-        own = tau[np.arange(i.size), i - first]
-        out[i] = np.sum(own[:, None] ** np.arange(d + 1) * c, axis=1)
+            c = _concentrate(xw, coef, v)
+            out[i] = np.sum(v[np.arange(i.size), place] * c, axis=1)
     return out
+
+
+def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """``a @ b`` for a stack ``a`` (..., k) and a matrix ``b`` (k, l) shared by the
+    stack as one matrix product, or a stack ``b`` (batch, k, l) matched to ``a``."""
+    if b.ndim == 2:
+        return (a.reshape(-1, a.shape[-1]) @ b).reshape(*a.shape[:-1], b.shape[-1])
+    return a @ b
+
+
+def _concentrate(xw, coef, v):
+    """Concentration steps of the local trimmed fits of the windows ``xw`` (b, w) from
+    the starts ``coef`` (b, K, a); ``v`` (w, a) or (b, w, a): the polynomial rows of
+    the windows (shared or one set per window).  Returns the best fit (b, a)."""
+    w, a = xw.shape[1], coef.shape[-1]
+    q = (w + (a - 1) + 2) // 2 + 1
+    vt = np.swapaxes(v, -1, -2)
+    # The normal equations of a fit on a mask of the window are Hankel: the masked sums
+    # of the powers tau^0 .. tau^(2a - 2), one product for all windows and starts.
+    tau = v[..., 1] if a > 1 else np.zeros(v.shape[:-1])
+    powers = tau[..., None] ** np.arange(2 * a - 1)  # (w, 2a - 1) or (b, w, 2a - 1)
+    for step in range(_LTS_STEPS):
+        r2 = (xw[:, None, :] - coef @ vt) ** 2  # (b, K, w)
+        smallest = np.partition(r2, q - 1, axis=-1)
+        if step == 1:  # keep the most promising starts only
+            best = np.argsort(smallest[..., :q].sum(-1), axis=1)[:, :_LTS_KEEP]
+            coef = np.take_along_axis(coef, best[..., None], axis=1)
+            r2 = np.take_along_axis(r2, best[..., None], axis=1)
+            smallest = np.take_along_axis(smallest, best[..., None], axis=1)
+        # The q samples with the smallest residuals (a tie admits one more).
+        mask = (r2 <= smallest[..., q - 1 : q]).astype(float)  # (b, K, w)
+        coef = _hankel_solve(_times(mask, powers), _times(mask * xw[:, None, :], v), 1e-12)
+    r = xw[:, None, :] - coef @ vt
+    obj = np.partition(r**2, q - 1, axis=-1)[..., :q].sum(-1)
+    return coef[np.arange(xw.shape[0]), np.argmin(obj, axis=1)]
 
 
 def _screen_one(x, t, h, degree, cutoff, scale_half):

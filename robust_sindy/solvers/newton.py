@@ -20,7 +20,9 @@ Hessian on ``S`` is the inlier Gram matrix, formed from the full Gram matrix
     d_{\\bar S} = -\\xi_{\\bar S},
 
 a ``|S| x |S|`` system per column, independent of the number of samples once the
-outliers are the minority.  The step is in correction form: its right-hand side is the
+outliers are the minority.  From one step to the next only a few samples change sides,
+and ``M`` is updated by those rows (:class:`GramCache`; formed afresh when many change
+or the updates' rounding could matter).  The step is in correction form: its right-hand side is the
 gradient, computed from residuals ``y - Theta xi`` evaluated afresh at every step, so
 each step also refines the previous one and an exact fit keeps residuals at rounding
 level although the systems are normal equations.  When the inliers do not determine
@@ -35,8 +37,8 @@ factorisation.  Columns it cannot certify within its step budget are handed to t
 (:mod:`robust_sindy.solvers.admm`), warm-started from the Newton point.
 
 One step costs three passes over ``Theta`` for all columns together (residual,
-gradient, the direction's image), ``|O| |S|^2`` for the outlier correction and a
-``|S|``-sized eigen-decomposition per column.
+gradient, the direction's image), ``|changed| p^2`` for the Gram update (``|O| p^2``
+when formed afresh) and a ``|S|``-sized eigen-decomposition per column.
 """
 
 from __future__ import annotations
@@ -50,7 +52,7 @@ from .._certificates import column_norms, kkt_from_gradient, rounding_free
 from .._losses import huber_psi, soft_threshold
 from ._base import SolverOutput
 
-__all__ = ["Prepared", "line_search", "newton", "prepare", "solve_newton"]
+__all__ = ["GramCache", "Prepared", "line_search", "newton", "prepare", "solve_newton"]
 
 _EIG_CUT = 1e-11  # relative eigenvalue cut of the Newton systems
 _MAX_STEP = 2.0**20  # longest line-search step
@@ -84,7 +86,12 @@ class ScaledColumns:
         self.T = _Transposed(self)
 
     def __matmul__(self, x):
-        return self.theta @ (x / (self.scale[:, None] if x.ndim == 2 else self.scale))
+        if x.ndim == 1:
+            return self.theta @ (x / self.scale)
+        # Column-major (m, k): every elementwise operation and sum over the samples
+        # then runs along contiguous memory (with few target columns, several times
+        # faster than along rows of length k).
+        return ((x / self.scale[:, None]).T @ self.theta.T).T
 
     def __getitem__(self, rows):
         return self.theta[rows] / self.scale
@@ -173,13 +180,15 @@ def slope(t, r, q, x, d, lam, delta):
     return (lam * s) @ d - huber_psi(r - t * q, delta) @ q
 
 
-def line_search(r, q, x, d, lam, delta) -> float:
+def line_search(r, q, x, d, lam, delta, upper: float | None = None) -> float:
     """Exact minimiser of the convex piecewise-quadratic ``phi(t)`` over ``t >= 0``.
 
     ``phi'(t) = a + b t`` between breakpoints (a residual entering or leaving the
     quadratic zone of the Huber loss, a coordinate crossing zero); the breakpoints are
     sorted once and the slope is accumulated segment by segment, so the minimiser is
-    exact (0 if ``d`` is no descent direction, at most ``2**20``).
+    exact (0 if ``d`` is no descent direction, at most ``2**20``).  ``upper``, a step
+    at which the slope is known to be ``>= 0``, bounds the search: only the breakpoints
+    before it are sorted.
     """
     if slope(0.0, r, q, x, d, lam, delta) >= 0:
         return 0.0
@@ -217,18 +226,24 @@ def line_search(r, q, x, d, lam, delta) -> float:
     ev_t.append(tz[cross])
     ev_a.append((lam * np.abs(d) - lam * s0 * d)[cross])
     ev_b.append(np.zeros(int(cross.sum())))
-    t_ev = np.concatenate(ev_t)
+    t_ev, e_a, e_b = np.concatenate(ev_t), np.concatenate(ev_a), np.concatenate(ev_b)
+    last = np.inf
+    if upper is not None:
+        before_upper = t_ev <= upper
+        t_ev, e_a, e_b, last = t_ev[before_upper], e_a[before_upper], e_b[before_upper], upper
     order = np.argsort(t_ev, kind="stable")
     t_ev = t_ev[order]
-    ca = a0 + np.concatenate([[0.0], np.cumsum(np.concatenate(ev_a)[order])])
-    cb = b0 + np.concatenate([[0.0], np.cumsum(np.concatenate(ev_b)[order])])
+    ca = a0 + np.concatenate([[0.0], np.cumsum(e_a[order])])
+    cb = b0 + np.concatenate([[0.0], np.cumsum(e_b[order])])
     starts = np.concatenate([[0.0], t_ev])
-    ends = np.concatenate([t_ev, [np.inf]])
+    ends = np.concatenate([t_ev, [last]])
     with np.errstate(invalid="ignore"):
         end_slope = np.where(np.isfinite(ends), ca + cb * ends, np.where(cb > 0, np.inf, ca))
     hit = np.flatnonzero(end_slope >= 0)
     if hit.size == 0:
-        return _MAX_STEP
+        # Without a bound: the slope stays negative (the longest step); with one, the
+        # accumulated slope fell short of its known sign at ``upper`` by rounding.
+        return _MAX_STEP if upper is None else float(upper)
     k = hit[0]
     if ca[k] + cb[k] * starts[k] >= 0 or cb[k] <= 0:
         t = starts[k]
@@ -267,6 +282,58 @@ def inlier_gram(A: np.ndarray, G: np.ndarray, w: np.ndarray) -> np.ndarray:
     return M
 
 
+#: Rank updates of the inlier Gram matrices: at most this fraction of the samples may
+#: change sides, and the summed squares of the entries of the rows ever added or
+#: removed may reach at most ``_DRIFT`` times the updated diagonal, coordinate by
+#: coordinate (the rounding updates leave is ``eps`` times those sums); otherwise the
+#: matrix is formed afresh.
+_UPDATE_ROWS, _DRIFT = 0.05, 1e4
+
+
+class GramCache:
+    """The inlier Gram matrix of each column's last Newton step, with its inlier set.
+
+    A step whose inlier set differs from the last one in a few samples updates that
+    matrix by those rows (``M + A_in^T A_in - A_out^T A_out``, ``|changed| p^2``)
+    instead of forming it from the outliers or the inliers (``|O| p^2`` or
+    ``|I| p^2``); :data:`_DRIFT` bounds the rounding the updates may accumulate.
+    """
+
+    def __init__(self):
+        self.entries: dict = {}
+        self.updates = 0
+        self.fresh = 0
+
+    def gram(self, A, G, inlier: np.ndarray, ids) -> np.ndarray:
+        """``A^T diag(inlier_k) A`` for every column ``k`` of the boolean ``inlier``
+        (m, k); ``ids`` name the columns across calls."""
+        m, p = A.shape
+        M = np.empty((inlier.shape[1], p, p))
+        fresh = []
+        for c, key in enumerate(ids):
+            entry = self.entries.get(key)
+            if entry is not None:
+                old, M0, drift = entry
+                changed = np.flatnonzero(inlier[:, c] != old)
+                if changed.size <= _UPDATE_ROWS * m:
+                    rows = A[changed]
+                    sign = np.where(inlier[changed, c], 1.0, -1.0)
+                    Mc = M0 + (rows * sign[:, None]).T @ rows
+                    drift = drift + np.einsum("ij,ij->j", rows, rows)
+                    if np.all(drift <= _DRIFT * np.diag(Mc)):
+                        M[c] = Mc
+                        self.entries[key] = (inlier[:, c].copy(), Mc, drift)
+                        self.updates += 1
+                        continue
+            fresh.append(c)
+        if fresh:
+            M[fresh] = inlier_gram(A, G, inlier[:, fresh].astype(float))
+            for c in fresh:
+                self.entries[ids[c]] = (inlier[:, c].copy(), M[c].copy(), np.zeros(p))
+            self.fresh += len(fresh)
+        return M
+
+
 def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
     """Solve ``M_k[S_k, S_k] d = rhs[S_k, k]`` for every column ``k`` (batched).
 
@@ -293,13 +360,15 @@ def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
     return np.where(S, np.einsum("kij,kj->ik", V, c), 0.0), ~keep.all(axis=1)
 
 
-def direction(A, G, T, r, delta, lam, x, g, free, mu):
+def direction(A, G, T, r, delta, lam, x, g, free, mu, cache=None, ids=None):
     """Newton directions (p, k) of the active columns at ``x`` (see the module doc).
 
     ``mu`` (k,) is a Levenberg-Marquardt term added to the diagonal (the columns of
     ``A`` have unit norm; see :func:`newton` for its rule): where few inliers leave the
     system nearly singular (a least-absolute-deviation-like piece), it keeps the step
-    bounded; near the optimum it is zero and the step is Newton's.
+    bounded; near the optimum it is zero and the step is Newton's.  ``cache``
+    (:class:`GramCache`, columns named by ``ids``) updates the inlier Gram matrices of
+    the previous step instead of forming them afresh.
     """
     u = x + T[:, None] * g
     S = (np.abs(u) > T[:, None] * lam) | free
@@ -308,12 +377,15 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu):
     eye = np.eye(A.shape[1])
 
     def solve(weights, cols):
-        M = inlier_gram(A, G, weights)
+        if cache is not None and weights.dtype == bool:
+            M = cache.gram(A, G, weights, [ids[c] for c in cols])
+        else:
+            M = inlier_gram(A, G, weights.astype(float, copy=False))
         rhs = g[:, cols] - lam[:, cols] * sigma[:, cols] + np.einsum("kij,jk->ik", M, off[:, cols])
         return masked_solve(M + mu[cols, None, None] * eye, rhs, S[:, cols])
 
     everything = np.arange(r.shape[1])
-    d, deficient = solve((np.abs(r) <= delta).astype(float), everything)
+    d, deficient = solve(np.abs(r) <= delta, everything)
     if deficient.any():
         # Too few inliers to fix the support's coefficients: the reweighted
         # least-squares step, whose quadratic model majorises the Huber loss.
@@ -351,7 +423,11 @@ def step_lengths(A, r, x, d, g, lam, delta, lipschitz, phi0=None):
             d[:, k] = soft_threshold(x[:, k] + g[:, k] / lipschitz, lam[:, k] / lipschitz)
             d[:, k] -= x[:, k]
             q[:, k] = A @ d[:, k]
-        t[k] = line_search(r[:, k], q[:, k], x[:, k], d[:, k], lam[:, k], delta[k])
+        rk, qk, xk, dk, lk = r[:, k], q[:, k], x[:, k], d[:, k], lam[:, k]
+        # Where the full step overshoots (the usual reason it failed), the minimiser
+        # lies before it: only the breakpoints up to it need sorting.
+        upper = 1.0 if slope(1.0, rk, qk, xk, dk, lk, delta[k]) >= 0 else None
+        t[k] = line_search(rk, qk, xk, dk, lk, delta[k], upper)
     return t, d
 
 
@@ -394,6 +470,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
     stalled = np.zeros(k_all, dtype=bool)
     mu = np.zeros(k_all)
     act = np.arange(k_all)
+    cache = GramCache()
     for step in range(max_steps + 1):
         # All columns still active: views, not copies, of the m x n arrays.
         cols = slice(None) if act.size == k_all else act
@@ -426,7 +503,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
         if not go.all():
             act, xa, ya, la, da, g = act[go], xa[:, go], ya[:, go], la[:, go], da[go], g[:, go]
             ra = r[:, act]
-        d = direction(A, G, T, ra, da, la, xa, g, free[:, act], mu[act])
+        d = direction(A, G, T, ra, da, la, xa, g, free[:, act], mu[act], cache, act)
         t, d = step_lengths(A, ra, xa, d, g, la, da, prepared.lipschitz, obj[go])
         # Damping only after a step the objective did not accept in full, relaxed again
         # after full steps (a trust-region-like rule; undamped Newton near the optimum).
@@ -501,7 +578,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
             column_norms(y) / np.sqrt(max(y.shape[0], 1)),
         )
     c = np.where((c > 0) & np.isfinite(c), c, 1.0)
-    ys, ds = y / c, delta / c
+    ys, ds = np.divide(y, c, out=np.empty(y.shape, order="F")), delta / c  # column-major
     lam_s = lam[nz] / scale[:, None] / c
     tol = opts["tol"]
     messages = [""] * n
