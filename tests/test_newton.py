@@ -125,3 +125,26 @@ def test_passes_over_theta_are_counted():
     steps = res.info["newton_steps"].max()
     # One residual, one gradient and one direction image per step, plus the start.
     assert 3 <= res.info["passes"] <= 3 * steps + 6
+
+
+def test_near_lad_points_are_certified_by_newton_without_the_admm():
+    # The paper's contaminated Lorenz data after the model screen, delta from the data
+    # (about 3e-4 of the targets' spread): at large lam nearly every residual is beyond
+    # delta, a least-absolute-deviation-like problem that takes Newton tens of steps.
+    # It must get them rather than hand the column to the much slower ADMM.
+    from robust_sindy.noise import contaminate
+    from robust_sindy.selection import auto_delta, screen_rows
+    from robust_sindy.systems import Lorenz
+
+    system = Lorenz()
+    data = system.generate()
+    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(0))
+    theta = system.fitted_library().transform(noisy.x)
+    y = noisy.x_dot[:, list(system.targets)]
+    keep = ~screen_rows(theta, y).outliers
+    theta, y = theta[keep], y[keep]
+    delta = np.atleast_1d(auto_delta(theta, y))
+    lam = lambda_max(theta, y, delta) * np.logspace(0, -4, 50)[13]
+    out = nw.solve_newton(theta, y, delta, lam)
+    assert out.converged.all() and not out.info["fallback"].any()
+    assert rs.kkt_violation(theta, y, out.coef, delta, lam).max() <= 1e-8

@@ -59,7 +59,7 @@ _MAX_STEP = 2.0**20  # longest line-search step
 _ARMIJO = 1e-4
 _LM = 1e-2
 _DIRECT_GRAM = 0.5  # form M from the inlier rows when outliers carry this much of a column
-FIRST_STEPS = 5  # the fast path's own Newton run may take 5x newton_steps
+FIRST_STEPS = 25  # the fast path's own Newton run may take 25x newton_steps
 #: A column has stalled when its KKT violation has not halved for this many steps while
 #: its objective changed by at most ``_STALL_OBJ`` relative: the floating-point floor.
 _STALL_STEPS, _STALL_OBJ = 5, 1e-12
