@@ -246,6 +246,8 @@ def _errors(x, t, flags, h, degree):
 #: polynomial degree, number of elemental starts, concentration steps, starts kept
 #: after the first step, and windows per batch (bounds the memory to a few MB).
 _LTS_HALF, _LTS_DEGREE, _LTS_STARTS, _LTS_STEPS, _LTS_KEEP, _LTS_BATCH = 6, 3, 30, 3, 4, 4096
+#: Ridge added to the diagonal of the trimmed fits' systems (elemental and concentrated).
+_LTS_RIDGE = 1e-12
 
 
 def _elemental_subsets(w: int, size: int, count: int) -> np.ndarray:
@@ -294,7 +296,7 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
     the fit ignores up to ``w - q`` gross errors in every window, wherever they are."""
     m, h, d = x.size, _LTS_HALF, _LTS_DEGREE
     w = min(2 * h + 1, m)
-    eye = 1e-12 * np.eye(d + 1)
+    eye = _LTS_RIDGE * np.eye(d + 1)
     subsets = _elemental_subsets(w, d + 1, _LTS_STARTS)
     out = np.empty(m)
     for lo in range(0, m, _LTS_BATCH):
@@ -360,7 +362,7 @@ def _concentrate(xw, coef, v):
             smallest = np.take_along_axis(smallest, best[..., None], axis=1)
         # The q samples with the smallest residuals (a tie admits one more).
         mask = (r2 <= smallest[..., q - 1 : q]).astype(float)  # (b, K, w)
-        coef = _hankel_solve(_times(mask, powers), _times(mask * xw[:, None, :], v), 1e-12)
+        coef = _hankel_solve(_times(mask, powers), _times(mask * xw[:, None, :], v), _LTS_RIDGE)
     r = xw[:, None, :] - coef @ vt
     obj = np.partition(r**2, q - 1, axis=-1)[..., :q].sum(-1)
     return coef[np.arange(xw.shape[0]), np.argmin(obj, axis=1)]
