@@ -29,6 +29,7 @@ from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
 from .selection.aliasing import ALIAS_RTOL, aliased_columns
 from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
+from .selection.criteria import MIN_BIC_MARGIN
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
 from .selection.screening import temporal_screen
@@ -56,10 +57,6 @@ STABILITY_TOLERANCE = 0.5
 #: along its least-excited direction beyond which the errors in the variables decide
 #: which terms are selected.
 MAX_LIBRARY_NOISE = 0.15
-#: BIC difference between the chosen support and the best other one on the path below
-#: which the data do not strongly prefer the chosen support (6: "strong" evidence on
-#: the scale of Kass and Raftery, 1995).
-MIN_BIC_MARGIN = 6.0
 
 
 class IdentificationWarning(UserWarning):
@@ -122,10 +119,18 @@ class Diagnostics:
         raised it to: the floor, not the data, left them out, so they may be real (a
         warning says so); NaN for every other term.
     bic_margin : ndarray (n,)
-        Per equation, how much higher the BIC of the best other support on the path
-        scored than the chosen one (``Selection.margin``); ``inf`` when the path offers
-        no other, NaN with a fixed ``lam`` or ``criterion="cv"``.  Below
+        Per equation, how much higher the BIC of the best other candidate support
+        scored than the chosen one (``Selection.margin``); ``inf`` when there is no
+        other, NaN with a fixed ``lam`` or ``criterion="cv"``.  Below
         ``MIN_BIC_MARGIN`` the data do not strongly prefer the chosen support.
+    subset_size : ndarray of int (n,)
+        Besides the ``lam`` path's, the criterion compares the best supports of every
+        size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
+        searched).  A larger support was compared with the path's candidates only.
+    from_subsets : ndarray of bool (n,)
+        Equations whose support came from that search: no point of the ``lam`` path
+        proposed it (strongly collinear terms), and ``lam_`` and ``result_`` are those
+        of the best path point.
     significance : ndarray (n, p)
         Robust t statistic of every selected term (the coefficient over its sandwich
         standard error, :func:`robust_sindy.selection.significance.robust_t`); NaN off
@@ -170,6 +175,8 @@ class Diagnostics:
     bias_ratio: np.ndarray
     below_floor: np.ndarray
     bic_margin: np.ndarray
+    subset_size: np.ndarray
+    from_subsets: np.ndarray
     significance: np.ndarray
     significance_level: float
     pruned: np.ndarray
@@ -291,11 +298,12 @@ class Diagnostics:
         if close.size:
             margins = ", ".join(f"{v:.1f}" for v in self.bic_margin[close])
             out.append(
-                f"equations {close.tolist()}: another support on the path scored within "
+                f"equations {close.tolist()}: another support scored within "
                 f"{MIN_BIC_MARGIN:g} of the chosen one's BIC (differences {margins}): the "
                 "data do not strongly prefer the selected terms; compare the candidates "
-                "(selection_.candidates, selection_.scores), and try more data or measured "
-                "derivatives"
+                "(selection_.candidates and selection_.scores on the path, "
+                "selection_.subsets and selection_.subset_scores), and try more data or "
+                "measured derivatives"
             )
         return out
 
@@ -318,6 +326,13 @@ class Diagnostics:
             "  terms left out below the noise floor per equation: "
             f"{np.isfinite(self.below_floor).sum(axis=1).tolist()}",
             f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}",
+            f"  supports searched exhaustively up to size: {self.subset_size.tolist()}"
+            + (
+                " (chosen from that search: equations "
+                f"{np.flatnonzero(self.from_subsets).tolist()})"
+                if self.from_subsets.any()
+                else ""
+            ),
             "  smallest robust t per equation: "
             + np.array2string(_smallest(self.significance), precision=3),
             "  terms dropped below the significance bar per equation: "
@@ -1251,6 +1266,16 @@ class HuberSINDy(BaseEstimator):
                 self.selection_.margin.copy()
                 if self.selection_ is not None and self.selection_.criterion == "bic"
                 else np.full(self.coef_.shape[0], np.nan)
+            ),
+            subset_size=(
+                self.selection_.subset_size.copy()
+                if self.selection_ is not None
+                else np.zeros(self.coef_.shape[0], dtype=int)
+            ),
+            from_subsets=(
+                self.selection_.from_subsets.copy()
+                if self.selection_ is not None
+                else np.zeros(self.coef_.shape[0], dtype=bool)
             ),
             significance=self.significance_.copy(),
             significance_level=SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED,

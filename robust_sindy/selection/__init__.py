@@ -18,7 +18,10 @@
 * :func:`select` — runs the path, the selection stage at every point, and picks
   ``lam`` per equation by a robust BIC (:func:`information_criterion`) or by blocked
   cross-validation (:func:`blocked_folds`) scored with the Huber loss;
-  :func:`score_margin` is how much worse the best other support scored.
+  :func:`score_margin` is how much worse the best other support scored.  The BIC
+  also scores best-subset candidates (:func:`best_subsets`: the best supports of every
+  size up to a budget, by weighted least squares), which a lasso path on strongly
+  collinear terms may never propose.
 * :func:`robust_t` — the robust t statistic of selected terms (sandwich standard
   errors from the residuals, corrected for their correlation time): with measured
   derivatives, a term under the noise floor stays when it reaches
@@ -40,6 +43,7 @@ True
 from .aliasing import ALIAS_RTOL, aliased_columns
 from .criteria import (
     CRITERIA,
+    MIN_BIC_MARGIN,
     Selection,
     blocked_folds,
     correlation_time,
@@ -52,19 +56,23 @@ from .refit import STAGE_ROUNDS, threshold_refit
 from .scale import HUBER_EFFICIENCY_CONSTANT, auto_delta, robust_scale
 from .screening import Screening, screen_rows
 from .significance import SIGNIFICANCE, robust_t
+from .subsets import SUBSET_BUDGET, best_subsets
 
 __all__ = [
     "ALIAS_RTOL",
     "CRITERIA",
     "HUBER_EFFICIENCY_CONSTANT",
+    "MIN_BIC_MARGIN",
     "PATH_MAX_ITER",
     "SIGNIFICANCE",
     "STAGE_ROUNDS",
+    "SUBSET_BUDGET",
     "Path",
     "Screening",
     "Selection",
     "aliased_columns",
     "auto_delta",
+    "best_subsets",
     "blocked_folds",
     "correlation_time",
     "information_criterion",

@@ -15,9 +15,11 @@ from .._validation import check_int, check_problem, loss_delta
 from .path import Path, path, pilot_budget
 from .refit import STAGE_ROUNDS, _refit_column, _select_column
 from .scale import HUBER_EFFICIENCY_CONSTANT, _check_method, auto_delta
+from .subsets import best_subsets
 
 __all__ = [
     "CRITERIA",
+    "MIN_BIC_MARGIN",
     "Selection",
     "blocked_folds",
     "correlation_time",
@@ -27,6 +29,11 @@ __all__ = [
 
 #: Criteria :func:`select` accepts.
 CRITERIA = ("bic", "cv")
+
+#: BIC difference between the chosen support and the best other candidate below which
+#: the data do not strongly prefer the chosen support (6: "strong" evidence on the
+#: scale of Kass and Raftery, 1995).
+MIN_BIC_MARGIN = 6.0
 
 
 def correlation_time(residuals, segments=None, max_lag: int = 100) -> np.ndarray:
@@ -125,7 +132,18 @@ class Selection:
         Per column, how much worse the best candidate with another support scored than
         the chosen one (:func:`score_margin`; ``inf`` when every point has the same
         support).  For ``criterion="bic"`` it is a BIC difference: below about 6 the
-        data do not strongly prefer the chosen support.
+        data do not strongly prefer the chosen support.  With ``criterion="bic"`` it
+        counts the best-subset candidates too.
+    subsets : ndarray, shape (E, p, n)
+        For ``criterion="bic"``, the selection stage's refit of the best few supports
+        of every size up to ``subset_size`` (:func:`best_subsets`); empty otherwise.
+    subset_scores : ndarray, shape (E, n)
+        Their criterion.
+    subset_size : ndarray of int, shape (n,)
+        The largest support size searched exhaustively (0: not searched).
+    from_subsets : ndarray of bool, shape (n,)
+        Equations whose chosen support came from that search, not the path; ``index``
+        and ``lam`` are then the best path point's.
     """
 
     coef: np.ndarray
@@ -138,6 +156,10 @@ class Selection:
     path: Path
     criterion: str
     margin: np.ndarray
+    subsets: np.ndarray
+    subset_scores: np.ndarray
+    subset_size: np.ndarray
+    from_subsets: np.ndarray
 
     def __repr__(self) -> str:
         return (
@@ -147,14 +169,16 @@ class Selection:
         )
 
 
-def _stage_all(theta, y, path_coef, delta, tol, method, solver, options):
-    """Selection stage at every path point, refits shared between identical supports."""
+def _stage_all(theta, y, path_coef, delta, tol, method, solver, options, caches=None):
+    """Selection stage at every path point, refits shared between identical supports
+    (``caches``: one dict per column, support to refit, filled here)."""
     L, _, n = path_coef.shape
     out = np.zeros_like(path_coef)
     col = np.linalg.norm(theta, axis=0)
     ynorm = np.linalg.norm(y, axis=0)
+    caches = [{} for _ in range(n)] if caches is None else caches
     for k in range(n):
-        cache: dict = {}
+        cache = caches[k]
 
         def refit(keep, k=k):
             return _refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
@@ -164,6 +188,78 @@ def _stage_all(theta, y, path_coef, delta, tol, method, solver, options):
                 path_coef[i, :, k], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache
             )
     return out
+
+
+def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solver, options, caches):
+    """Best-subset candidates of every equation (see ``Selection.subsets``): supports
+    ranked under the Huber weights of ``reference`` (p, n), each refitted and put
+    through the selection stage (``caches`` as in :func:`_stage_all`), then scored by
+    the BIC with correlation times ``tau``.
+
+    A support is skipped when it cannot score below ``best`` (n,), the best score so
+    far: its Huber loss is at least that of the unpenalised fit on every term, and at
+    least the dual objective of any feasible point (:func:`_loss_floor`), so its score
+    at least the larger of the two loss terms plus its own size's penalty.
+    """
+    m, p = theta.shape
+    n = y.shape[1]
+    col = np.linalg.norm(theta, axis=0)
+    ynorm = np.linalg.norm(y, axis=0)
+    penalty = np.log(np.maximum(m / np.asarray(tau, float), 2.0))
+    found, sizes = {}, np.zeros(n, dtype=int)
+    for k in range(n):
+        r = np.abs(y[:, k] - theta @ reference[:, k])
+        weights = np.minimum(1.0, delta[k] / np.maximum(r, np.finfo(float).tiny))
+        masks, sizes[k] = best_subsets(theta, y[:, k], weights)
+        cache = caches[k]
+
+        def refit(keep, k=k):
+            return _refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
+
+        def score(c, k=k):
+            return information_criterion(theta, y[:, k], c, delta[k], tau=tau[k])
+
+        every = np.any(theta != 0, axis=0)
+        if every.tobytes() not in cache:
+            cache[every.tobytes()] = refit(every)
+        dense = cache[every.tobytes()]
+        floor = score(dense) - np.count_nonzero(dense) * penalty[k]
+        top = best[k]
+        found[k] = []
+        for mask in masks:
+            if floor + mask.sum() * penalty[k] >= top:
+                continue
+            dual = _loss_floor(theta[:, mask], y[:, k], weights, delta[k])
+            scale = (delta[k] / HUBER_EFFICIENCY_CONSTANT) ** 2 * tau[k]
+            if 2.0 * dual / scale + mask.sum() * penalty[k] >= top:
+                continue
+            key = mask.tobytes()
+            if key not in cache:
+                cache[key] = refit(mask)
+            c = _select_column(cache[key], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache)
+            found[k].append((c, score(c)))
+            top = min(top, found[k][-1][1])
+    count = max((len(v) for v in found.values()), default=0)
+    cands = np.zeros((count, p, n))
+    scores = np.full((count, n), np.nan)
+    for k, pairs in found.items():
+        for i, (c, v) in enumerate(pairs):
+            cands[i, :, k], scores[i, k] = c, v
+    return cands, scores, sizes
+
+
+def _loss_floor(a, y, weights, delta) -> float:
+    """A lower bound on ``min_b sum_i H_delta(y_i - a_i b)``: the dual objective
+    ``y'u - |u|^2 / 2`` at a feasible ``u`` (``a'u = 0``, ``|u_i| <= delta``), the
+    clipped residuals of the ``weights``-weighted least-squares fit projected onto the
+    null space of ``a'`` and scaled into the box."""
+    sw = np.sqrt(weights)
+    b = np.linalg.lstsq(a * sw[:, None], y * sw, rcond=None)[0]
+    u = np.clip(y - a @ b, -delta, delta)
+    q, _ = np.linalg.qr(a)
+    u = u - q @ (q.T @ u)
+    u *= min(1.0, delta / max(np.max(np.abs(u)), np.finfo(float).tiny))
+    return float(y @ u - 0.5 * u @ u)
 
 
 def score_margin(scores, candidates, index) -> np.ndarray:
@@ -206,6 +302,7 @@ def select(
     method: str = "admm",
     solver: str | None = None,
     progress: bool = False,
+    subsets: bool = True,
     **options,
 ) -> Selection:
     """Choose ``lam`` per equation: path, selection stage, then a robust criterion.
@@ -219,7 +316,14 @@ def select(
        :func:`blocked_folds`, scored by the mean Huber loss on the held-out block
        (squared error on held-out data would be dominated by the outliers).
 
-    The lowest score wins; ties go to the larger ``lam``.
+    4. ``criterion="bic"`` (and ``subsets``): the best few supports of every size up
+       to a budget, by weighted least squares under the Huber weights of the densest
+       candidate (:func:`robust_sindy.selection.subsets.best_subsets`), go through the
+       same stage and criterion: a lasso path may never propose the true support of
+       strongly collinear terms, and a margin among its own candidates does not show
+       it.
+
+    The lowest score wins; ties go to the larger ``lam``, then to the path.
 
     Parameters
     ----------
@@ -241,6 +345,10 @@ def select(
         For ``method="cvxpy"``.
     progress : bool
         Show progress bars.
+    subsets : bool
+        With ``criterion="bic"``, add the best-subset candidates of every size up to
+        the one :data:`robust_sindy.selection.subsets.SUBSET_BUDGET` allows
+        (``Selection.subsets``).
     **options
         Solver options (see :func:`robust_sindy.fit`).
 
@@ -295,7 +403,10 @@ def select(
     # HuberSINDy refits it with the full budget).
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
-        candidates = _stage_all(theta, y, full.coef, delta_k, tol, method, solver, path_options)
+        caches: list[dict] = [{} for _ in range(y.shape[1])]
+        candidates = _stage_all(
+            theta, y, full.coef, delta_k, tol, method, solver, path_options, caches
+        )
     if criterion == "bic":
         # Correlation time of the residuals of the densest refit (the most complete model).
         densest = candidates[-1]
@@ -328,7 +439,23 @@ def select(
             scores += huber(r, delta_k).mean(axis=1) / len(folds)
     index = _pick(scores)
     cols = np.arange(y.shape[1])
-    bad = np.flatnonzero(~full.converged[index, cols])
+    every, every_scores = candidates, scores
+    subset_coef = np.zeros((0, *candidates.shape[1:]))
+    subset_scores = np.zeros((0, y.shape[1]))
+    subset_size = np.zeros(y.shape[1], dtype=int)
+    if subsets and criterion == "bic":
+        # Supports the path's order of entry cannot reach (strongly collinear terms).
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            subset_coef, subset_scores, subset_size = _subset_candidates(
+                theta, y, candidates[-1], delta_k, tau, tol,
+                np.nanmin(scores, axis=0), method, solver, path_options, caches,
+            )  # fmt: skip
+        every = np.concatenate([candidates, subset_coef])
+        every_scores = np.concatenate([scores, subset_scores])
+    chosen = _pick(every_scores)
+    from_subsets = chosen >= len(candidates)
+    bad = np.flatnonzero(~full.converged[index, cols] & ~from_subsets)
     if bad.size:
         warnings.warn(
             f"the path point chosen for columns {bad.tolist()} was not certified (relative "
@@ -337,7 +464,7 @@ def select(
             ConvergenceWarning,
             stacklevel=2,
         )
-    coef = candidates[index, :, cols].T
+    coef = every[chosen, :, cols].T
     return Selection(
         coef=coef,
         lam=full.lams[index, cols],
@@ -348,5 +475,9 @@ def select(
         support=coef != 0,
         path=full,
         criterion=criterion,
-        margin=score_margin(scores, candidates, index),
+        margin=score_margin(every_scores, every, chosen),
+        subsets=subset_coef,
+        subset_scores=subset_scores,
+        subset_size=subset_size,
+        from_subsets=from_subsets,
     )
