@@ -126,7 +126,9 @@ class Diagnostics:
     subset_size : ndarray of int (n,)
         Besides the ``lam`` path's, the criterion compares the best supports of every
         size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
-        searched).  A larger support was compared with the path's candidates only.
+        searched; smaller than the budget allows where the BIC penalty of larger
+        supports alone rules them out).  A larger support was compared with the path's
+        candidates only.
     from_subsets : ndarray of bool (n,)
         Equations whose support came from that search: no point of the ``lam`` path
         proposed it (strongly collinear terms), and ``lam_`` and ``result_`` are those

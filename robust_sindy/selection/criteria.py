@@ -198,8 +198,10 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
 
     A support is skipped when it cannot score below ``best`` (n,), the best score so
     far: its Huber loss is at least that of the unpenalised fit on every term, and at
-    least the dual objective of any feasible point (:func:`_loss_floor`), so its score
-    at least the larger of the two loss terms plus its own size's penalty.
+    least the dual objective of any feasible point (:func:`_loss_floor`, for both),
+    so its score at least the larger of the two loss terms plus its own size's
+    penalty.  Sizes the first bound rules out are not searched at all (``subset_size``
+    is then smaller than the budget allows).
     """
     m, p = theta.shape
     n = y.shape[1]
@@ -210,7 +212,6 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
     for k in range(n):
         r = np.abs(y[:, k] - theta @ reference[:, k])
         weights = np.minimum(1.0, delta[k] / np.maximum(r, np.finfo(float).tiny))
-        masks, sizes[k] = best_subsets(theta, y[:, k], weights)
         cache = caches[k]
 
         def refit(keep, k=k):
@@ -223,14 +224,20 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
         if every.tobytes() not in cache:
             cache[every.tobytes()] = refit(every)
         dense = cache[every.tobytes()]
-        floor = score(dense) - np.count_nonzero(dense) * penalty[k]
+        scale = (delta[k] / HUBER_EFFICIENCY_CONSTANT) ** 2 * tau[k]
+        # No support fits better than every term together: the dual bound at the dense
+        # refit's residuals (valid even if that refit stopped early).
+        whole = _loss_floor(theta[:, every], y[:, k], None, delta[k], y[:, k] - theta @ dense)
+        floor = 2.0 * whole / scale
         top = best[k]
+        # Sizes whose penalty alone takes them past the best score are not searched.
+        reach = np.ceil((top - floor) / penalty[k]) - 1 if np.isfinite(top) else p
+        masks, sizes[k] = best_subsets(theta, y[:, k], weights, max_size=reach)
         found[k] = []
         for mask in masks:
             if floor + mask.sum() * penalty[k] >= top:
                 continue
             dual = _loss_floor(theta[:, mask], y[:, k], weights, delta[k])
-            scale = (delta[k] / HUBER_EFFICIENCY_CONSTANT) ** 2 * tau[k]
             if 2.0 * dual / scale + mask.sum() * penalty[k] >= top:
                 continue
             key = mask.tobytes()
@@ -248,14 +255,17 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
     return cands, scores, sizes
 
 
-def _loss_floor(a, y, weights, delta) -> float:
+def _loss_floor(a, y, weights, delta, residuals=None) -> float:
     """A lower bound on ``min_b sum_i H_delta(y_i - a_i b)``: the dual objective
     ``y'u - |u|^2 / 2`` at a feasible ``u`` (``a'u = 0``, ``|u_i| <= delta``), the
-    clipped residuals of the ``weights``-weighted least-squares fit projected onto the
-    null space of ``a'`` and scaled into the box."""
-    sw = np.sqrt(weights)
-    b = np.linalg.lstsq(a * sw[:, None], y * sw, rcond=None)[0]
-    u = np.clip(y - a @ b, -delta, delta)
+    clipped ``residuals`` (default: of the ``weights``-weighted least-squares fit)
+    projected onto the null space of ``a'`` and scaled into the box.  It holds whether
+    or not the fit that gave the residuals converged."""
+    if residuals is None:
+        sw = np.sqrt(weights)
+        b = np.linalg.lstsq(a * sw[:, None], y * sw, rcond=None)[0]
+        residuals = y - a @ b
+    u = np.clip(residuals, -delta, delta)
     q, _ = np.linalg.qr(a)
     u = u - q @ (q.T @ u)
     u *= min(1.0, delta / max(np.max(np.abs(u)), np.finfo(float).tiny))

@@ -44,13 +44,16 @@ def subset_sizes(n_terms: int, budget: int = SUBSET_BUDGET) -> int:
     return s
 
 
-def best_subsets(theta, y, weights, *, per_size: int = 3, budget: int = SUBSET_BUDGET):
+def best_subsets(
+    theta, y, weights, *, per_size: int = 3, budget: int = SUBSET_BUDGET, max_size=None
+):
     """The ``per_size`` supports of each size with the smallest weighted residual sum
     of squares ``sum_i w_i (y_i - theta_i b_S)^2``, least squares on the columns ``S``.
 
     Sizes run from 1 to :func:`subset_sizes` of the nonzero columns of ``theta`` (zero
-    columns take part in no support).  Returns a list of boolean masks over the columns
-    of ``theta``, the best first within each size, and the largest size searched.
+    columns take part in no support), and at most to ``max_size``.  Returns a list of
+    boolean masks over the columns of ``theta``, the best first within each size, and
+    the largest size searched.
     """
     theta = np.asarray(theta, dtype=float)
     w = np.asarray(weights, dtype=float)
@@ -60,6 +63,8 @@ def best_subsets(theta, y, weights, *, per_size: int = 3, budget: int = SUBSET_B
     rhs = a.T @ (w * y)
     diag = np.diag(gram)
     largest = subset_sizes(pool.size, budget)
+    if max_size is not None:
+        largest = max(0, min(largest, int(max_size)))
     masks = []
     for s in range(1, largest + 1):
         best_rss = np.empty(0)
