@@ -114,3 +114,9 @@ def test_the_loss_floor_never_exceeds_the_optimal_huber_loss(seed):
     ):
         assert floor <= optimum * (1 + 1e-12)
     assert _loss_floor(a, y, None, delta, y - a @ res.coef) >= optimum * (1 - 1e-6)
+    basis = np.linalg.qr(a)[0]
+    assert np.isclose(
+        _loss_floor(a, y, None, delta, y - a @ res.coef, basis),
+        _loss_floor(a, y, None, delta, y - a @ res.coef),
+        rtol=1e-12,
+    )

@@ -208,6 +208,8 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
     col = np.linalg.norm(theta, axis=0)
     ynorm = np.linalg.norm(y, axis=0)
     penalty = np.log(np.maximum(m / np.asarray(tau, float), 2.0))
+    every = np.any(theta != 0, axis=0)
+    basis = np.linalg.qr(theta[:, every])[0]  # shared by every equation's floor
     found, sizes = {}, np.zeros(n, dtype=int)
     for k in range(n):
         r = np.abs(y[:, k] - theta @ reference[:, k])
@@ -220,14 +222,15 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
         def score(c, k=k):
             return information_criterion(theta, y[:, k], c, delta[k], tau=tau[k])
 
-        every = np.any(theta != 0, axis=0)
         if every.tobytes() not in cache:
             cache[every.tobytes()] = refit(every)
         dense = cache[every.tobytes()]
         scale = (delta[k] / HUBER_EFFICIENCY_CONSTANT) ** 2 * tau[k]
         # No support fits better than every term together: the dual bound at the dense
         # refit's residuals (valid even if that refit stopped early).
-        whole = _loss_floor(theta[:, every], y[:, k], None, delta[k], y[:, k] - theta @ dense)
+        whole = _loss_floor(
+            theta[:, every], y[:, k], None, delta[k], y[:, k] - theta @ dense, basis
+        )
         floor = 2.0 * whole / scale
         top = best[k]
         # Sizes whose penalty alone takes them past the best score are not searched.
@@ -255,18 +258,19 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
     return cands, scores, sizes
 
 
-def _loss_floor(a, y, weights, delta, residuals=None) -> float:
+def _loss_floor(a, y, weights, delta, residuals=None, basis=None) -> float:
     """A lower bound on ``min_b sum_i H_delta(y_i - a_i b)``: the dual objective
     ``y'u - |u|^2 / 2`` at a feasible ``u`` (``a'u = 0``, ``|u_i| <= delta``), the
     clipped ``residuals`` (default: of the ``weights``-weighted least-squares fit)
-    projected onto the null space of ``a'`` and scaled into the box.  It holds whether
-    or not the fit that gave the residuals converged."""
+    projected onto the null space of ``a'`` (``basis``: an orthonormal basis of the
+    columns of ``a``, when known) and scaled into the box.  It holds whether or not
+    the fit that gave the residuals converged."""
     if residuals is None:
         sw = np.sqrt(weights)
         b = np.linalg.lstsq(a * sw[:, None], y * sw, rcond=None)[0]
         residuals = y - a @ b
     u = np.clip(residuals, -delta, delta)
-    q, _ = np.linalg.qr(a)
+    q = np.linalg.qr(a)[0] if basis is None else basis
     u = u - q @ (q.T @ u)
     u *= min(1.0, delta / max(np.max(np.abs(u)), np.finfo(float).tiny))
     return float(y @ u - 0.5 * u @ u)
