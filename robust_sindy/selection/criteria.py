@@ -82,16 +82,22 @@ def information_criterion(theta, xdot, coef, delta, scale=None, tau=None) -> np.
     n = y.shape[1]
     delta_k = loss_delta("huber", delta, n)
     coef = np.asarray(coef, dtype=float).reshape(theta.shape[1], n)
-    sigma = (
-        delta_k / HUBER_EFFICIENCY_CONSTANT
-        if scale is None
-        else np.broadcast_to(np.asarray(scale, float), (n,))
-    )
     tau = np.ones(n) if tau is None else np.broadcast_to(np.asarray(tau, float), (n,))
-    m_eff = np.maximum(theta.shape[0] / tau, 2.0)
+    sigma, penalty = _bic_terms(theta.shape[0], delta_k, tau, scale)
     loss = huber(y - theta @ coef, delta_k).sum(axis=0)
-    out = 2.0 * loss / sigma**2 / tau + np.count_nonzero(coef, axis=0) * np.log(m_eff)
+    out = 2.0 * loss / sigma**2 / tau + np.count_nonzero(coef, axis=0) * penalty
     return float(out[0]) if one_d else out
+
+
+def _bic_terms(m, delta, tau, scale=None):
+    """The scale ``sigma`` and the penalty per term ``log(m / tau)`` of
+    :func:`information_criterion` (per column; ``delta`` and ``tau`` arrays (n,))."""
+    sigma = (
+        delta / HUBER_EFFICIENCY_CONSTANT
+        if scale is None
+        else np.broadcast_to(np.asarray(scale, float), delta.shape)
+    )
+    return sigma, np.log(np.maximum(m / tau, 2.0))
 
 
 def blocked_folds(m: int, n_folds: int = 5) -> list[tuple[np.ndarray, np.ndarray]]:
@@ -207,9 +213,11 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
     n = y.shape[1]
     col = np.linalg.norm(theta, axis=0)
     ynorm = np.linalg.norm(y, axis=0)
-    penalty = np.log(np.maximum(m / np.asarray(tau, float), 2.0))
+    # The criterion's own terms: the bounds below are on its scores.
+    sigma, penalty = _bic_terms(m, delta, tau)
     every = np.any(theta != 0, axis=0)
-    basis = np.linalg.qr(theta[:, every])[0]  # shared by every equation's floor
+    whole_library = theta[:, every]
+    basis = np.linalg.qr(whole_library)[0]  # shared by every equation's floor
     found, sizes = {}, np.zeros(n, dtype=int)
     for k in range(n):
         r = np.abs(y[:, k] - theta @ reference[:, k])
@@ -225,13 +233,10 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
         if every.tobytes() not in cache:
             cache[every.tobytes()] = refit(every)
         dense = cache[every.tobytes()]
-        scale = (delta[k] / HUBER_EFFICIENCY_CONSTANT) ** 2 * tau[k]
         # No support fits better than every term together: the dual bound at the dense
         # refit's residuals (valid even if that refit stopped early).
-        whole = _loss_floor(
-            theta[:, every], y[:, k], None, delta[k], y[:, k] - theta @ dense, basis
-        )
-        floor = 2.0 * whole / scale
+        whole = _loss_floor(whole_library, y[:, k], None, delta[k], y[:, k] - theta @ dense, basis)
+        floor = 2.0 * whole / sigma[k] ** 2 / tau[k]
         top = best[k]
         # Sizes whose penalty alone takes them past the best score are not searched.
         reach = np.ceil((top - floor) / penalty[k]) - 1 if np.isfinite(top) else p
@@ -241,7 +246,7 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
             if floor + mask.sum() * penalty[k] >= top:
                 continue
             dual = _loss_floor(theta[:, mask], y[:, k], weights, delta[k])
-            if 2.0 * dual / scale + mask.sum() * penalty[k] >= top:
+            if 2.0 * dual / sigma[k] ** 2 / tau[k] + mask.sum() * penalty[k] >= top:
                 continue
             key = mask.tobytes()
             if key not in cache:
@@ -453,7 +458,7 @@ def select(
             scores += huber(r, delta_k).mean(axis=1) / len(folds)
     index = _pick(scores)
     cols = np.arange(y.shape[1])
-    every, every_scores = candidates, scores
+    pooled, pooled_scores = candidates, scores
     subset_coef = np.zeros((0, *candidates.shape[1:]))
     subset_scores = np.zeros((0, y.shape[1]))
     subset_size = np.zeros(y.shape[1], dtype=int)
@@ -465,9 +470,9 @@ def select(
                 theta, y, candidates[-1], delta_k, tau, tol,
                 np.nanmin(scores, axis=0), method, solver, path_options, caches,
             )  # fmt: skip
-        every = np.concatenate([candidates, subset_coef])
-        every_scores = np.concatenate([scores, subset_scores])
-    chosen = _pick(every_scores)
+        pooled = np.concatenate([candidates, subset_coef])
+        pooled_scores = np.concatenate([scores, subset_scores])
+    chosen = _pick(pooled_scores)
     from_subsets = chosen >= len(candidates)
     bad = np.flatnonzero(~full.converged[index, cols] & ~from_subsets)
     if bad.size:
@@ -478,7 +483,7 @@ def select(
             ConvergenceWarning,
             stacklevel=2,
         )
-    coef = every[chosen, :, cols].T
+    coef = pooled[chosen, :, cols].T
     return Selection(
         coef=coef,
         lam=full.lams[index, cols],
@@ -489,7 +494,7 @@ def select(
         support=coef != 0,
         path=full,
         criterion=criterion,
-        margin=score_margin(every_scores, every, chosen),
+        margin=score_margin(pooled_scores, pooled, chosen),
         subsets=subset_coef,
         subset_scores=subset_scores,
         subset_size=subset_size,
