@@ -20,10 +20,29 @@ from ._validation import as_float_array, check_int
 from .simulate import check_time
 
 __all__ = [
+    "HALF_WINDOWS",
+    "choose_half_window",
     "finite_difference",
     "local_polynomial_derivative",
     "savgol_derivative",
 ]
+
+#: Half widths (samples on each side of a sample) among which
+#: :func:`choose_half_window` chooses the window of the local polynomial.
+HALF_WINDOWS = (2, 3, 4, 6, 8, 12, 16, 24, 32)
+#: A window is chosen when its states' prediction error is within this fraction of the
+#: smallest one (the smallest such window: no wider, more biased window for a gain
+#: that is within the noise of the estimate).
+WINDOW_TOL = 0.02
+#: Each window must fit this many times into the usable samples of a component.
+_WINDOWS_PER_COMPONENT = 5
+#: Samples scored per component (evenly spread over the usable ones).
+_SCORED = 2000
+#: Wider windows are not scored once one predicts this much worse than the best so far.
+_STOP = 1.5
+#: Level of the test that a widening of the window changed the derivative along the
+#: library (see :func:`choose_half_window`).
+BIAS_LEVEL = 1e-3
 
 
 def _check(x, t, min_length: int) -> tuple[np.ndarray, np.ndarray]:
@@ -83,11 +102,11 @@ def _nearest_usable(usable: np.ndarray, size: int) -> np.ndarray:
 
 def _local_fit(x2, t, usable, half_window, degree):
     """Per sample and component: the derivative of the least-squares polynomial through
-    the ``2 half_window + 1`` usable samples nearest to it."""
+    the ``2 half_window[k] + 1`` usable samples nearest to it."""
     m, n = x2.shape
-    size = 2 * half_window + 1
     out = np.empty((m, n))
     for k in range(n):
+        size = 2 * int(half_window[k]) + 1
         ok = usable[:, k] if usable[:, k].sum() >= size else np.ones(m, dtype=bool)
         idx = _nearest_usable(ok, size)
         tau = t[idx] - t[:, None]
@@ -102,7 +121,137 @@ def _local_fit(x2, t, usable, half_window, degree):
     return out
 
 
-def local_polynomial_derivative(x, t, half_window: int = 2, degree: int = 4, mask=None):
+def choose_half_window(
+    x, t, mask=None, degree: int = 4, candidates=HALF_WINDOWS, library=None, rows=None
+) -> np.ndarray:
+    """Half width of the local polynomial per component, chosen by leave-one-out
+    prediction of the states themselves.
+
+    For each candidate ``h`` every usable sample is predicted by the least-squares
+    polynomial of ``degree`` through its ``2 h`` nearest usable neighbours (itself left
+    out); the error's robust scale (:func:`robust_sindy.selection.robust_scale`) is the
+    noise of the sample plus that of the prediction plus the window's bias.  Narrow
+    windows predict noisily, wide ones with bias.  Scores start at the narrowest window
+    with enough neighbours for the polynomial (``2 h > degree``); the smallest ``h``
+    within :data:`WINDOW_TOL` of the best score is chosen when it is wider than that
+    one, and otherwise the narrowest candidate (the fourth-order difference, ``h = 2``,
+    for the defaults).  On densely sampled noisy states this is a wide window (the
+    fourth-order difference multiplies the noise by about ``1 / dt``); where the
+    trajectory is coarsely sampled or nearly noise-free the bias dominates at once and
+    the window stays narrow.  Only ratios of errors of the same component enter, so the
+    choice does not depend on the units of the states or of time.  Candidates wider
+    than a fifth of the usable samples are not tried.
+
+    A window that predicts the states well can still bias their derivative, and a
+    regression explains a bias that is smooth in time with library terms: on nearly
+    noise-free data even a tiny one is significant.  Given the ``library`` matrix
+    (m, p; its ``rows``, a boolean mask, are those tested: by default all), the window
+    is widened from the narrowest candidate one step at a time, up to the choice
+    above, only while the change of the derivative has no component along the
+    library: the Wald statistic of the least-squares projection of that change on the
+    library's columns, with its sandwich covariance (the residuals' correlation time
+    counted, as in :func:`robust_sindy.selection.significance.robust_t`), stays below
+    the ``1 - BIAS_LEVEL`` quantile of its chi-square distribution.  The test is
+    invariant to rescaling the columns, so still unit-free.
+
+    Returns an int array (n,) (a 1-element array for 1-D ``x``).
+    """
+    from ._scaling import robust_scale
+    from .selection.screening import _clean_neighbours, _loo_predict
+
+    degree = check_int(degree, "degree", 1)
+    x, t = _check(x, t, 2)
+    x2 = x[:, None] if x.ndim == 1 else x
+    m, n = x2.shape
+    usable = _usable(mask, m, n)
+    cands = sorted({check_int(h, "candidates", 1) for h in candidates})
+    out = np.full(n, cands[0], dtype=int)
+    for k in range(n):
+        ok = usable[:, k]
+        # A left-out sample is predicted from 2 h neighbours, enough for the polynomial
+        # only from the second narrowest window on: the narrowest is kept unless a wider
+        # one predicts clearly better than the narrowest that can be scored.
+        fit_in = [h for h in cands if 2 * h > degree
+                  and _WINDOWS_PER_COMPONENT * (2 * h + 1) <= ok.sum()]  # fmt: skip
+        if len(fit_in) < 2:
+            continue
+        # The same usable samples scored for every window (at most _SCORED of them,
+        # evenly spread): the scores differ by the predictions only.
+        at = np.flatnonzero(ok)
+        at = at[np.linspace(0, at.size - 1, min(at.size, _SCORED)).round().astype(int)]
+        scores = []
+        for h in fit_in:
+            nb = _clean_neighbours(~ok, h, at)
+            pred, _ = _loo_predict(x2[:, k], t, nb, degree, at)
+            scores.append(float(robust_scale((x2[at, k] - pred)[(nb >= 0).all(axis=1)])))
+            if scores[-1] > _STOP * min(scores):
+                break  # the bias dominates: wider windows only predict worse
+        scores = np.array(scores)
+        if not np.all(np.isfinite(scores)) or scores.min() <= 0:
+            continue  # noise-free (or degenerate) states: the narrowest window
+        best = int(np.flatnonzero(scores <= (1 + WINDOW_TOL) * scores.min())[0])
+        if best > 0:
+            out[k] = fit_in[best]
+    if library is not None:
+        out = _library_guard(x2, t, usable, out, degree, cands, library, rows)
+    return out
+
+
+def _library_guard(x2, t, usable, upper, degree, cands, library, rows) -> np.ndarray:
+    """The widest window up to ``upper`` (per component) reached from the narrowest
+    candidate by steps whose change of the derivative the library does not explain
+    (see :func:`choose_half_window`)."""
+    import scipy.stats
+
+    from ._scaling import robust_scale
+    from .selection.criteria import correlation_time
+
+    m, n = x2.shape
+    a = as_float_array(library, "library", (2,))
+    if a.shape[0] != m:
+        raise ValueError(f"library has {a.shape[0]} rows but x has {m} samples")
+    rows = np.ones(m, dtype=bool) if rows is None else np.asarray(rows, dtype=bool)
+    if rows.shape != (m,):
+        raise ValueError(f"rows must be a boolean mask of shape ({m},); got {rows.shape}")
+    out = np.full(n, cands[0], dtype=int)
+    if rows.sum() <= a.shape[1] or not np.all(np.isfinite(a[rows])):
+        return out  # nothing to test with: the narrowest window
+    u, sing, _ = np.linalg.svd(a[rows], full_matrices=False)
+    u = u[:, sing > 1e-10 * sing[0]]
+    bar = scipy.stats.chi2.ppf(1.0 - BIAS_LEVEL, u.shape[1])
+    for k in range(n):
+        steps = [h for h in cands if h <= upper[k]]
+        if len(steps) < 2:
+            continue
+        prev = _local_fit(x2[:, [k]], t, usable[:, [k]], [steps[0]], degree)[:, 0]
+        for h in steps[1:]:
+            cur = _local_fit(x2[:, [k]], t, usable[:, [k]], [h], degree)[:, 0]
+            # The change, against the errors the wider derivative would leave in the
+            # regression (its residuals on the whole library, clipped at 3 robust
+            # scales as Huber's score clips them): the change counts at the precision
+            # the regression will see, not at that of the noisier narrow window.
+            c = u.T @ (cur - prev)[rows]
+            r = cur[rows] - u @ (u.T @ cur[rows])
+            bound = 3.0 * float(robust_scale(r))
+            r = np.clip(r, -bound, bound)
+            cov = correlation_time(r)[0] * (u * r[:, None] ** 2).T @ u
+            wald = float(c @ np.linalg.lstsq(cov, c, rcond=None)[0])
+            if not wald <= bar:
+                break
+            out[k], prev = h, cur
+    return out
+
+
+def _usable(mask, m: int, n: int) -> np.ndarray:
+    usable = np.ones((m, n), dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
+    if usable.shape != (m, n) and usable.size == m * n:
+        usable = usable.reshape(m, n)
+    if usable.shape != (m, n):
+        raise ValueError(f"mask must have the shape of x {(m, n)}; got {usable.shape}")
+    return usable
+
+
+def local_polynomial_derivative(x, t, half_window=2, degree: int = 4, mask=None):
     """Derivative of a least-squares polynomial fitted around every sample.
 
     For sample ``i`` a polynomial of ``degree`` in relative time is fitted to the
@@ -110,28 +259,37 @@ def local_polynomial_derivative(x, t, half_window: int = 2, degree: int = 4, mas
     the ends) and differentiated at ``t_i``.  With the defaults
     (``half_window = 2, degree = 4``) on uniform samples this is the fourth-order
     central difference: its error is a systematic ``O(dt^4)`` bias that a regression on
-    a library would otherwise explain with spurious terms.  Wider windows average the
-    noise away at the price of that bias (on a trajectory sampled at 100 samples per
-    period, a 7-sample quartic already puts percent-level errors on its fast
-    excursions).  Entries where ``mask`` is False (e.g. the outliers flagged by
+    a library would otherwise explain with spurious terms, but it multiplies the noise
+    of the states by about ``1 / dt``.  Wider windows average the noise away at the
+    price of that bias (on a trajectory sampled at 100 samples per period, a 7-sample
+    quartic already puts percent-level errors on its fast excursions);
+    ``half_window="auto"`` chooses it per component from the data
+    (:func:`choose_half_window`), and a sequence gives one per component.  Entries where
+    ``mask`` is False (e.g. the outliers flagged by
     :func:`robust_sindy.selection.temporal_screen`) are left out: the window of a
     sample is then its ``2 half_window + 1`` nearest samples that are not, so an
     outlier is not smeared over its window as it is by :func:`savgol_derivative`, and
     the derivatives next to it keep their order.  ``t`` may be non-uniform.
     """
-    half_window = check_int(half_window, "half_window", 1)
     degree = check_int(degree, "degree", 1)
-    w = 2 * half_window + 1
-    if degree >= w:
-        raise ValueError(f"degree ({degree}) must be < 2 * half_window + 1 ({w})")
+    x = as_float_array(x, "x", (1, 2))
+    n = 1 if x.ndim == 1 else x.shape[1]
+    if isinstance(half_window, str):
+        if half_window != "auto":
+            raise ValueError(
+                f"half_window must be an int, a sequence or 'auto'; got {half_window!r}"
+            )
+        half = choose_half_window(x, t, mask, degree)
+    else:
+        half = np.broadcast_to(np.atleast_1d(np.asarray(half_window, dtype=object)), (n,))
+        half = np.array([check_int(h, "half_window", 1) for h in half])
+    w = 2 * int(half.max()) + 1
+    if degree >= 2 * int(half.min()) + 1:
+        raise ValueError(f"degree ({degree}) must be < 2 * half_window + 1 ({2 * half.min() + 1})")
     x, t = _check(x, t, w)
     one_d = x.ndim == 1
     x2 = x[:, None] if one_d else x
     m, n = x2.shape
-    usable = np.ones((m, n), dtype=bool) if mask is None else np.asarray(mask, dtype=bool)
-    if usable.shape != (m, n) and usable.size == m * n:
-        usable = usable.reshape(m, n)
-    if usable.shape != (m, n):
-        raise ValueError(f"mask must have the shape of x {x2.shape}; got {usable.shape}")
-    out = _local_fit(x2, t, usable, half_window, degree)
+    usable = _usable(mask, m, n)
+    out = _local_fit(x2, t, usable, half, degree)
     return out[:, 0] if one_d else out

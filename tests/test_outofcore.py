@@ -144,10 +144,13 @@ def test_huber_sindy_differentiates_dask_states_chunk_by_chunk(monkeypatch):
         model = rs.HuberSINDy().fit(da.from_array(x, chunks=700), 0.01)
     np.testing.assert_array_equal(model.support_, system.true_coef().T != 0)
     assert model.diagnostics_.certified.all()
-    # chunk by chunk with overlap: the derivatives of the in-memory path, away from spikes
-    whole = rs.HuberSINDy()._differentiate(x, 0.01 * np.arange(len(x)))
+    # chunk by chunk with overlap: the derivatives of the in-memory path, away from spikes,
+    # with the windows chosen on the sample
+    half = model.derivative_windows_
+    assert np.array_equal(model.diagnostics_.derivative_half_window, half) and half.min() >= 2
+    whole = rs.HuberSINDy()._differentiate(x, 0.01 * np.arange(len(x)), half)
     lazy = da.from_array(x, chunks=700).map_overlap(
-        lambda b: rs.HuberSINDy()._differentiate(b, 0.01 * np.arange(len(b))),
+        lambda b: rs.HuberSINDy()._differentiate(b, 0.01 * np.arange(len(b)), half),
         depth={0: model_module.DASK_OVERLAP, 1: 0}, boundary="none", dtype=float,
     ).compute()  # fmt: skip
     close = np.isclose(lazy, whole, rtol=1e-6, atol=1e-6).all(axis=1)

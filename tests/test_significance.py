@@ -123,7 +123,7 @@ def test_estimated_derivatives_keep_the_noise_floor():
         warnings.simplefilter("ignore")
         model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t)
     keep = ~model.screened_
-    (y,) = model._derivatives([x], [t], model.temporal_.flags)
+    (y,) = model._derivatives([x], [t], model.temporal_.flags, model.library_.transform(x))
     th = model.standardizer_.theta(model.library_.transform(x))[keep]
     yk = model.standardizer_.y(y)[keep]
     coef = model.standardizer_.coef_to_standard(model.coef_.T)

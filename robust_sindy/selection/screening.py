@@ -172,12 +172,13 @@ def _window_max(a: np.ndarray, h: int) -> np.ndarray:
     return np.lib.stride_tricks.sliding_window_view(padded, 2 * h + 1, axis=0).max(axis=-1)
 
 
-def _clean_neighbours(flags: np.ndarray, h: int) -> np.ndarray:
-    """For each sample, its ``2h`` nearest unflagged other samples (h on each side, topped
-    up from the other side at the ends); -1 where there are not enough."""
+def _clean_neighbours(flags: np.ndarray, h: int, at=None) -> np.ndarray:
+    """For each sample (each of ``at``), its ``2h`` nearest unflagged other samples (h on
+    each side, topped up from the other side at the ends); -1 where there are not
+    enough."""
     m = flags.size
     u = np.flatnonzero(~flags)
-    i = np.arange(m)
+    i = np.arange(m) if at is None else np.asarray(at)
     left_end = np.searchsorted(u, i, side="left")  # unflagged samples before i
     right_start = np.searchsorted(u, i, side="right")  # first unflagged after i
     n_right = u.size - right_start
@@ -192,13 +193,15 @@ def _clean_neighbours(flags: np.ndarray, h: int) -> np.ndarray:
     return np.where(valid, u[np.clip(pos, 0, max(u.size - 1, 0))], -1)
 
 
-def _loo_predict(x, t, nb, degree):
+def _loo_predict(x, t, nb, degree, at=None):
     """Leave-one-out local polynomial prediction of ``x`` (m,) from the neighbours ``nb``
     (m, 2h; -1 unused), and the factor ``sqrt(1 + sum_j w_j^2)`` by which the prediction
-    error's standard deviation exceeds that of the noise."""
+    error's standard deviation exceeds that of the noise.  ``at``: the samples whose
+    neighbours the rows of ``nb`` are (all samples when omitted)."""
     valid = nb >= 0
     idx = np.where(valid, nb, 0)
-    tau = np.where(valid, t[idx] - t[:, None], 0.0)
+    here = t if at is None else t[at]
+    tau = np.where(valid, t[idx] - here[:, None], 0.0)
     span = np.abs(tau).max(axis=1, keepdims=True)
     tau = tau / np.where(span > 0, span, 1.0)  # relative time: unit-free
     # The weights depend only on the pattern of relative times (with uniform sampling,

@@ -1,0 +1,150 @@
+"""The automatic window of the robust derivatives (choose_half_window)."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+from robust_sindy import HuberSINDy, PolynomialLibrary
+from robust_sindy.differentiation import choose_half_window, local_polynomial_derivative
+from robust_sindy.systems import Lorenz
+
+
+def _sine(per_period, noise, seed=0, m=2000):
+    rng = np.random.default_rng(seed)
+    t = np.arange(m) * 2 * np.pi / per_period
+    x = np.column_stack([np.sin(t), np.cos(0.5 * t)])
+    return t, x, x + noise * rng.normal(size=x.shape)
+
+
+def test_window_widens_with_noise_and_sampling_density_only():
+    # Coarsely sampled: the fourth-order difference (h = 2), noisy or not.
+    for noise in (1e-2, 0.0):
+        t, _, x = _sine(5, noise)
+        assert choose_half_window(x, t).tolist() == [2, 2], noise
+    # Noise-free and dense: whatever window is chosen keeps the derivative exact.
+    t, _, x = _sine(300, 0.0)
+    true = np.column_stack([np.cos(t), -0.5 * np.sin(0.5 * t)])
+    assert np.abs(local_polynomial_derivative(x, t, "auto") - true).max() < 1e-6
+    # Densely sampled noisy states: a wider window, growing with the density.
+    widths = []
+    for per_period in (20, 50, 300):
+        t, _, x = _sine(per_period, 1e-2)
+        widths.append(int(choose_half_window(x[:, :1], t)[0]))
+    assert widths[0] > 2
+    assert widths == sorted(widths) and widths[-1] >= 12
+
+
+def test_window_is_unit_free():
+    t, _, x = _sine(100, 1e-3, seed=3)
+    h = choose_half_window(x, t)
+    assert np.array_equal(choose_half_window(x * [1e3, 1e-3], t * 1e-2 + 5.0), h)
+
+
+def test_chosen_window_reduces_the_derivative_error():
+    t, _, x = _sine(200, 1e-2, seed=1)
+    true = np.column_stack([np.cos(t), -0.5 * np.sin(0.5 * t)])
+    narrow = np.abs(local_polynomial_derivative(x, t) - true).std(axis=0)
+    auto = np.abs(local_polynomial_derivative(x, t, "auto") - true).std(axis=0)
+    assert np.all(auto < narrow / 10)
+
+
+def test_masked_outliers_do_not_change_the_window():
+    t, _, x = _sine(100, 1e-2, seed=2)
+    bad = x.copy()
+    rng = np.random.default_rng(5)
+    idx = rng.choice(x.shape[0], 40, replace=False)
+    bad[idx, 0] += rng.choice([-1, 1], 40) * 2.0
+    mask = np.ones(x.shape, dtype=bool)
+    mask[idx, 0] = False
+    assert np.array_equal(choose_half_window(bad, t, mask), choose_half_window(x, t, mask))
+
+
+def test_half_window_arguments():
+    t, _, x = _sine(50, 1e-3)
+    per_state = local_polynomial_derivative(x, t, [2, 6])
+    assert np.array_equal(per_state[:, 0], local_polynomial_derivative(x[:, 0], t, 2))
+    assert np.array_equal(per_state[:, 1], local_polynomial_derivative(x[:, 1], t, 6))
+    with pytest.raises(ValueError, match="half_window"):
+        local_polynomial_derivative(x, t, "wide")
+    with pytest.raises(ValueError, match="half_window"):
+        local_polynomial_derivative(x, t, 0)
+    # A short trajectory keeps the narrowest window (too few samples to score wider ones).
+    assert choose_half_window(x[:20], t[:20]).tolist() == [2, 2]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_damped_oscillator_states_only_with_heavy_tails(seed):
+    """A weakly damped linear oscillator sampled densely, Student-t noise on every
+    entry, no derivatives: the fourth-order difference multiplies the noise by 1 / dt
+    and the damping (5 % of the rotation) was pruned as not significant."""
+    rng = np.random.default_rng(seed)
+    a = np.array([[-0.1, 2.0], [-2.0, -0.1]])
+    t = np.linspace(0.0, 25.0, 2500)
+    w, v = np.linalg.eig(a)
+    x0 = np.array([2.0 + rng.normal(), 0.0])
+    x = np.real((v * np.exp(np.outer(t, w))[:, None, :]) @ np.linalg.solve(v, x0))
+    noisy = x + 0.01 * x.std(axis=0) * rng.standard_t(2, size=x.shape)
+    fits = {}
+    for window in ("fixed", "auto"):
+        model = HuberSINDy(library=PolynomialLibrary(degree=2), derivative_window=window)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            fits[window] = model.fit(noisy, t)
+    names = model.get_feature_names()
+    truth = np.zeros_like(model.support_)
+    truth[:, [names.index("x0"), names.index("x1")]] = True
+    # The fourth-order difference multiplies the noise by 1 / dt: the damping is lost
+    # (and a warning says it may be real).
+    assert not np.array_equal(fits["fixed"].support_, truth)
+    assert np.nanmax(fits["fixed"].diagnostics_.pruned) >= 2
+    assert fits["fixed"].derivative_windows_.tolist() == [2, 2]
+    model = fits["auto"]
+    assert np.array_equal(model.support_, truth)
+    assert np.abs(model.coef_[:, [1, 2]] - a).max() < 0.02
+    assert np.all(model.derivative_windows_ > 2)
+    assert np.array_equal(model.diagnostics_.derivative_half_window, model.derivative_windows_)
+    # Measured derivatives: no window.
+    measured = HuberSINDy(library=PolynomialLibrary(degree=2))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        measured.fit(noisy, t, x_dot=x @ a.T)
+    assert measured.derivative_windows_.tolist() == [0, 0]
+    assert "measured" in repr(measured.diagnostics_)
+
+
+def test_library_guard_keeps_a_window_bias_out_of_the_regression():
+    """Nearly noise-free Lorenz: the states' prediction alone widens the windows, and the
+    derivative's smoothing bias then buys spurious terms; the library guard narrows the
+    windows back to where a widening changes nothing the library can explain."""
+    system = Lorenz()
+    data = system.generate(t_end=30.0)
+    rng = np.random.default_rng(1)
+    x = data.x + 1e-3 * rng.normal(size=data.x.shape)
+    library = PolynomialLibrary(degree=2)
+    theta = library.fit_transform(x)
+    by_states = choose_half_window(x, data.t)
+    guarded = choose_half_window(x, data.t, library=theta)
+    assert np.all(guarded <= by_states) and np.any(guarded < by_states)
+    truth = system.true_coef().T != 0
+    supports = []
+    for half in (by_states, guarded):
+        model = HuberSINDy(library=PolynomialLibrary(degree=2))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            model.fit(x, data.t, x_dot=local_polynomial_derivative(x, data.t, half))
+        supports.append(np.array_equal(model.support_, truth))
+    assert supports == [False, True]
+    # The guard is what HuberSINDy uses when it chooses the window.
+    model = HuberSINDy(derivative_window="auto")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model.fit(x, data.t)
+    assert np.array_equal(model.derivative_windows_, guarded)
+    assert np.array_equal(model.support_, truth)
+    with pytest.raises(ValueError, match="library"):
+        choose_half_window(x, data.t, library=theta[:-1])
+    with pytest.raises(ValueError, match="rows"):
+        choose_half_window(x, data.t, library=theta, rows=np.ones(3, dtype=bool))
+    with pytest.raises(ValueError, match="derivative_window"):
+        HuberSINDy(derivative_window=7).fit(x, data.t)
