@@ -100,11 +100,17 @@ def _nearest_usable(usable: np.ndarray, size: int) -> np.ndarray:
     return np.sort(np.take_along_axis(idx, best, axis=1), axis=1)
 
 
-def _local_fit(x2, t, usable, half_window, degree):
+#: Huber threshold (in noise scales) and reweighting steps of the robust local fits.
+HUBER_C, _HUBER_STEPS = 2.0, 4
+
+
+def _local_fit(x2, t, usable, half_window, degree, scale=None):
     """Per sample and component: the derivative of the least-squares polynomial through
-    the ``2 half_window[k] + 1`` usable samples nearest to it."""
+    the ``2 half_window[k] + 1`` usable samples nearest to it; with a noise ``scale``
+    per component, of the Huber fit (threshold ``HUBER_C`` scales, by reweighting)."""
     m, n = x2.shape
     out = np.empty((m, n))
+    eye = np.eye(degree + 1)
     for k in range(n):
         size = 2 * int(half_window[k]) + 1
         ok = usable[:, k] if usable[:, k].sum() >= size else np.ones(m, dtype=bool)
@@ -113,17 +119,27 @@ def _local_fit(x2, t, usable, half_window, degree):
         span = np.abs(tau).max(axis=1, keepdims=True)
         tau = tau / np.where(span > 0, span, 1.0)
         v = tau[..., None] ** np.arange(degree + 1)  # (m, size, d+1)
+        xw = x2[idx, k]
         gram = np.einsum("mja,mjb->mab", v, v)
-        rhs = np.einsum("mja,mj->ma", v, x2[idx, k])
         ridge = 1e-12 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None]
-        coef = np.linalg.solve(gram + ridge * np.eye(degree + 1), rhs[..., None])[..., 0]
-        out[:, k] = coef[:, 1] / span[:, 0]  # d/dt of c1 tau at tau = 0
+        coef = np.linalg.solve(gram + ridge * eye, np.einsum("mja,mj->ma", v, xw)[..., None])
+        robust = scale is not None and size > degree + 1 and np.isfinite(scale[k])
+        for _ in range(_HUBER_STEPS if robust and scale[k] > 0 else 0):
+            # An error the temporal screen left unflagged is not spread over the window.
+            r = np.abs(xw - (v @ coef)[..., 0])
+            w = np.minimum(1.0, HUBER_C * scale[k] / np.maximum(r, np.finfo(float).tiny))
+            gram = np.einsum("mja,mj,mjb->mab", v, w, v)
+            ridge = 1e-12 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None]
+            rhs = np.einsum("mja,mj->ma", v, w * xw)[..., None]
+            coef = np.linalg.solve(gram + ridge * eye, rhs)
+        out[:, k] = coef[:, 1, 0] / span[:, 0]  # d/dt of c1 tau at tau = 0
     return out
 
 
 def choose_half_window(
-    x, t, mask=None, degree: int = 4, candidates=HALF_WINDOWS, library=None, rows=None
-) -> np.ndarray:
+    x, t, mask=None, degree: int = 4, candidates=HALF_WINDOWS, library=None, rows=None,
+    scale=None,
+) -> np.ndarray:  # fmt: skip
     """Half width of the local polynomial per component, chosen by leave-one-out
     prediction of the states themselves.
 
@@ -151,8 +167,13 @@ def choose_half_window(
     library: the Wald statistic of the least-squares projection of that change on the
     library's columns, with its sandwich covariance (the residuals' correlation time
     counted, as in :func:`robust_sindy.selection.significance.robust_t`), stays below
-    the ``1 - BIAS_LEVEL`` quantile of its chi-square distribution.  The test is
-    invariant to rescaling the columns, so still unit-free.
+    the ``1 - BIAS_LEVEL`` quantile of its chi-square distribution; the samples tested
+    are those of ``rows`` whose narrowest derivative the library fits within 3.5 robust
+    scales (a gross error the temporal screen missed would bend the projection and
+    inflate the errors the change is measured against).  The test is
+    invariant to rescaling the columns, so still unit-free.  ``scale`` (the noise of
+    each component): the derivatives tested are the Huber fits that
+    :func:`local_polynomial_derivative` gives with it.
 
     Returns an int array (n,) (a 1-element array for 1-D ``x``).
     """
@@ -193,11 +214,37 @@ def choose_half_window(
         if best > 0:
             out[k] = fit_in[best]
     if library is not None:
-        out = _library_guard(x2, t, usable, out, degree, cands, library, rows)
+        scale = _noise_scale(scale, n)
+        out = _library_guard(x2, t, usable, out, degree, cands, library, rows, scale)
     return out
 
 
-def _library_guard(x2, t, usable, upper, degree, cands, library, rows) -> np.ndarray:
+def _fitted_rows(a, y, rows, cutoff: float = 3.5, rounds: int = 5) -> np.ndarray:
+    """``rows`` without the samples whose residual of ``y`` on the columns of ``a`` (by
+    least squares on the rows kept so far) exceeds ``cutoff`` robust scales."""
+    from ._scaling import robust_scale
+
+    keep = rows.copy()
+    for _ in range(rounds):
+        coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
+        r = np.abs(y - a @ coef)
+        new = rows & (r <= cutoff * float(robust_scale(r[keep])))
+        if np.array_equal(new, keep) or new.sum() <= a.shape[1]:
+            break
+        keep = new
+    return keep
+
+
+def _noise_scale(scale, n: int):
+    if scale is None:
+        return None
+    scale = np.broadcast_to(as_float_array(scale, "scale", (0, 1)), (n,))
+    if np.any(scale < 0):
+        raise ValueError(f"scale must be >= 0 (the noise of each state); got {scale}")
+    return scale
+
+
+def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) -> np.ndarray:
     """The widest window up to ``upper`` (per component) reached from the narrowest
     candidate by steps whose change of the derivative the library does not explain
     (see :func:`choose_half_window`)."""
@@ -216,22 +263,28 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows) -> np.nda
     out = np.full(n, cands[0], dtype=int)
     if rows.sum() <= a.shape[1] or not np.all(np.isfinite(a[rows])):
         return out  # nothing to test with: the narrowest window
-    u, sing, _ = np.linalg.svd(a[rows], full_matrices=False)
-    u = u[:, sing > 1e-10 * sing[0]]
-    bar = scipy.stats.chi2.ppf(1.0 - BIAS_LEVEL, u.shape[1])
     for k in range(n):
         steps = [h for h in cands if h <= upper[k]]
         if len(steps) < 2:
             continue
-        prev = _local_fit(x2[:, [k]], t, usable[:, [k]], [steps[0]], degree)[:, 0]
+        sk = None if scale is None else scale[[k]]
+        prev = _local_fit(x2[:, [k]], t, usable[:, [k]], [steps[0]], degree, sk)[:, 0]
+        # The samples the narrowest derivative's fit on the library does not reject
+        # (gross errors the temporal screen missed would otherwise bend the projection).
+        test = _fitted_rows(a, prev, rows)
+        if test.sum() <= a.shape[1]:
+            continue
+        u, sing, _ = np.linalg.svd(a[test], full_matrices=False)
+        u = u[:, sing > 1e-10 * sing[0]]
+        bar = scipy.stats.chi2.ppf(1.0 - BIAS_LEVEL, u.shape[1])
         for h in steps[1:]:
-            cur = _local_fit(x2[:, [k]], t, usable[:, [k]], [h], degree)[:, 0]
+            cur = _local_fit(x2[:, [k]], t, usable[:, [k]], [h], degree, sk)[:, 0]
             # The change, against the errors the wider derivative would leave in the
             # regression (its residuals on the whole library, clipped at 3 robust
             # scales as Huber's score clips them): the change counts at the precision
             # the regression will see, not at that of the noisier narrow window.
-            c = u.T @ (cur - prev)[rows]
-            r = cur[rows] - u @ (u.T @ cur[rows])
+            c = u.T @ (cur - prev)[test]
+            r = cur[test] - u @ (u.T @ cur[test])
             bound = 3.0 * float(robust_scale(r))
             r = np.clip(r, -bound, bound)
             cov = correlation_time(r)[0] * (u * r[:, None] ** 2).T @ u
@@ -251,7 +304,7 @@ def _usable(mask, m: int, n: int) -> np.ndarray:
     return usable
 
 
-def local_polynomial_derivative(x, t, half_window=2, degree: int = 4, mask=None):
+def local_polynomial_derivative(x, t, half_window=2, degree: int = 4, mask=None, scale=None):
     """Derivative of a least-squares polynomial fitted around every sample.
 
     For sample ``i`` a polynomial of ``degree`` in relative time is fitted to the
@@ -269,7 +322,10 @@ def local_polynomial_derivative(x, t, half_window=2, degree: int = 4, mask=None)
     :func:`robust_sindy.selection.temporal_screen`) are left out: the window of a
     sample is then its ``2 half_window + 1`` nearest samples that are not, so an
     outlier is not smeared over its window as it is by :func:`savgol_derivative`, and
-    the derivatives next to it keep their order.  ``t`` may be non-uniform.
+    the derivatives next to it keep their order.  ``t`` may be non-uniform.  With
+    ``scale`` (the noise level of each component, e.g. the temporal screen's), windows
+    wider than the polynomial are fitted by Huber's loss (threshold ``HUBER_C``
+    scales), so that an error the screen left unflagged is not spread over them.
     """
     degree = check_int(degree, "degree", 1)
     x = as_float_array(x, "x", (1, 2))
@@ -279,7 +335,7 @@ def local_polynomial_derivative(x, t, half_window=2, degree: int = 4, mask=None)
             raise ValueError(
                 f"half_window must be an int, a sequence or 'auto'; got {half_window!r}"
             )
-        half = choose_half_window(x, t, mask, degree)
+        half = choose_half_window(x, t, mask, degree, scale=scale)
     else:
         half = np.broadcast_to(np.atleast_1d(np.asarray(half_window, dtype=object)), (n,))
         half = np.array([check_int(h, "half_window", 1) for h in half])
@@ -291,5 +347,5 @@ def local_polynomial_derivative(x, t, half_window=2, degree: int = 4, mask=None)
     x2 = x[:, None] if one_d else x
     m, n = x2.shape
     usable = _usable(mask, m, n)
-    out = _local_fit(x2, t, usable, half, degree)
+    out = _local_fit(x2, t, usable, half, degree, _noise_scale(scale, n))
     return out[:, 0] if one_d else out

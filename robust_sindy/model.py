@@ -68,7 +68,7 @@ MAX_LIBRARY_NOISE = 0.15
 #: ``derivative_window="fixed"``: the fourth-order central difference.
 FIXED_HALF_WINDOW = 2
 #: The choices of ``derivative_window``.
-DERIVATIVE_WINDOWS = ("fixed", "auto")
+DERIVATIVE_WINDOWS = ("auto", "fixed")
 
 
 class IdentificationWarning(UserWarning):
@@ -307,8 +307,6 @@ class Diagnostics:
         if seen.size:
             estimated = self.significance_level > SIGNIFICANCE
             advice = "measured derivatives, " if estimated else ""
-            if estimated and np.max(self.derivative_half_window, initial=0) == FIXED_HALF_WINDOW:
-                advice += "derivative_window='auto' (densely sampled noisy states), "
             high = ", ".join(f"{v:.2g}" for v in np.nanmax(self.pruned[seen], axis=1))
             out.append(
                 f"equations {seen.tolist()}: {counts} selected terms were dropped because "
@@ -477,21 +475,18 @@ class HuberSINDy(BaseEstimator):
         Keyword options of :func:`robust_sindy.fit` (``max_iter``, ``tol``, ...).
     progress : bool
         Show progress bars for the ``lam`` path.
-    derivative_window : {"fixed", "auto"}
-        The window of ``differentiation="robust"``.  ``"fixed"`` (default): 5 samples,
-        the fourth-order central difference, whose error is a bias too small for the
-        regression to mistake for terms, but which multiplies the noise of the states by
-        about ``1 / dt``.  ``"auto"``: 5 to 65 samples, chosen per state and trajectory
+    derivative_window : {"auto", "fixed"}
+        The window of ``differentiation="robust"``.  ``"auto"`` (default): 5 to 65
+        samples, chosen per state and trajectory
         (:func:`~robust_sindy.differentiation.choose_half_window`: by how well a window
         predicts the states left out, widened only while the library cannot explain the
-        change of the derivative).  It pays on densely sampled states with noise on
-        every sample (a damped oscillator sampled 300 times per period with Student-t
-        noise: the damping terms, at robust t 3 with the fixed window, are found; the
-        zoo's heavy tails, states only: 81 % to 85 % exact), and costs where a fraction
-        of the samples carry errors too small for the temporal screen to flag, which a
-        wide window spreads over its neighbours (the zoo's whole-row contamination,
-        states only: 97.5 % to 91 %, one case wrong without a warning).  See
-        ``derivative_windows_``.
+        change of the derivative), windows wider than the quartic fitted by Huber's loss
+        at the noise level the temporal screen measured.  ``"fixed"``: 5 samples, the
+        fourth-order central difference, whose error is a bias too small for the
+        regression to mistake for terms, but which multiplies the noise of the states by
+        about ``1 / dt``, so that densely sampled noisy states lose their small terms
+        (a damped oscillator sampled 300 times per period with Student-t noise: the
+        damping, at robust t 3, is pruned).  See ``derivative_windows_``.
 
     Attributes
     ----------
@@ -513,9 +508,9 @@ class HuberSINDy(BaseEstimator):
         The temporal screen's flags, repaired states and noise levels.
     derivative_windows_ : ndarray of int (n_states,)
         Half width, in samples, of the window each state's derivative was estimated
-        over with ``differentiation="robust"`` (the widest over the trajectories; 2 with
-        ``derivative_window="fixed"``); 0 when ``x_dot`` was given or another
-        ``differentiation`` was used.
+        over with ``differentiation="robust"`` (the widest over the trajectories; 2, the
+        five-sample stencil, with ``derivative_window="fixed"``); 0 when ``x_dot`` was
+        given or another ``differentiation`` was used.
     screening_ : Screening or None
         The model-based screen's details (residual scales, rounds, convergence).
     library_noise_ : tuple (ndarray (n_features,), float)
@@ -583,7 +578,7 @@ class HuberSINDy(BaseEstimator):
         solver: str | None = None,
         solver_options: dict | None = None,
         progress: bool = False,
-        derivative_window="fixed",
+        derivative_window="auto",
     ):
         self.library = library
         self.delta = delta
@@ -657,10 +652,12 @@ class HuberSINDy(BaseEstimator):
             raise ValueError(f"u has {u.shape[1]} columns but the model was fitted with {q}")
         return np.hstack([x, u])
 
-    def _differentiate(self, x, t, half_window=None, library=None):
+    def _differentiate(self, x, t, half_window=None, library=None, scale=None):
         """Derivatives of one trajectory by ``differentiation``.  ``half_window``: of
         the robust one's local quartics (by default as ``derivative_window`` says, an
-        automatic choice guarded by the ``library`` matrix when given)."""
+        automatic choice guarded by the ``library`` matrix when given); ``scale``: the
+        states' noise for their Huber fits (by default the temporal screen's of ``x``).
+        """
         how = self.differentiation
         if callable(how):
             out = as_float_array(how(x, t), "differentiation output", (2,))
@@ -670,16 +667,18 @@ class HuberSINDy(BaseEstimator):
         _check_differentiation(how)
         if _is_robust(how):
             screen = temporal_screen(x, t)
+            scale = screen.scale if scale is None else scale
             if half_window is None and self.derivative_window == "auto":
                 half_window = choose_half_window(
                     screen.repaired, t, ~screen.flags, library=library,
-                    rows=~screen.flags.any(axis=1),
+                    rows=~screen.flags.any(axis=1), scale=scale,
                 )  # fmt: skip
             return local_polynomial_derivative(
                 screen.repaired,
                 t,
                 half_window=FIXED_HALF_WINDOW if half_window is None else half_window,
                 mask=~screen.flags,
+                scale=scale,
             )
         return _DIFFERENTIATION[how](x, t)
 
@@ -786,9 +785,10 @@ class HuberSINDy(BaseEstimator):
             if not (np.isfinite(dt) and dt > 0):
                 raise ValueError(f"t as a time step must be a finite number > 0; got {t!r}")
 
-            # The robust derivatives' windows are chosen once, on the first trajectory's
-            # part of the sample, and used for every chunk.
+            # The robust derivatives' windows and noise levels are measured once, on the
+            # first trajectory's part of the sample, and used for every chunk.
             half = np.full(xs[0].shape[1], FIXED_HALF_WINDOW)
+            noise = None
             if _is_robust(self.differentiation) and self.derivative_window == "auto":
                 k = min(DASK_SAMPLE, xs[0].shape[0])
                 head = np.asarray(xs[0][:k], dtype=float)
@@ -800,11 +800,13 @@ class HuberSINDy(BaseEstimator):
                 half = choose_half_window(
                     screen.repaired, t_head, ~screen.flags,
                     library=library.fit_transform(inputs, input_names=names),
-                    rows=~screen.flags.any(axis=1),
+                    rows=~screen.flags.any(axis=1), scale=screen.scale,
                 )  # fmt: skip
+                noise = screen.scale
 
             def derivative(block):
-                return self._differentiate(block, dt * np.arange(block.shape[0]), half)
+                return self._differentiate(block, dt * np.arange(block.shape[0]), half,
+                                           scale=noise)  # fmt: skip
 
             # Each chunk with DASK_OVERLAP samples of its neighbours on either side: the
             # temporal screen's and the stencils' windows lie well within them.
@@ -1094,16 +1096,18 @@ class HuberSINDy(BaseEstimator):
             if _is_robust(self.differentiation):
                 if self.temporal_ is None:  # screen=False: the derivatives' own screen
                     own = temporal_screen(a, ti)
-                    repaired, usable = own.repaired, ~own.flags
+                    repaired, usable, noise = own.repaired, ~own.flags, own.scale
                 else:
                     repaired, usable = states, ~entry_flags[seg]
+                    noise = self.temporal_.scale
                 half = np.full(a.shape[1], FIXED_HALF_WINDOW)
                 if self.derivative_window == "auto":
                     half = choose_half_window(
-                        repaired, ti, usable, library=theta[seg], rows=usable.all(axis=1)
-                    )
+                        repaired, ti, usable, library=theta[seg], rows=usable.all(axis=1),
+                        scale=noise,
+                    )  # fmt: skip
                 windows.append(half)
-                d = local_polynomial_derivative(repaired, ti, half, mask=usable)
+                d = local_polynomial_derivative(repaired, ti, half, mask=usable, scale=noise)
             else:
                 d = self._differentiate(states, ti)
             still = np.ptp(states, axis=0) <= ALIAS_RTOL * np.max(np.abs(states), axis=0)

@@ -148,3 +148,24 @@ def test_library_guard_keeps_a_window_bias_out_of_the_regression():
         choose_half_window(x, data.t, library=theta, rows=np.ones(3, dtype=bool))
     with pytest.raises(ValueError, match="derivative_window"):
         HuberSINDy(derivative_window=7).fit(x, data.t)
+
+
+def test_wide_windows_are_fitted_robustly_given_the_noise_scale():
+    t, _, x = _sine(200, 1e-3, seed=6)
+    true = np.column_stack([np.cos(t), -0.5 * np.sin(0.5 * t)])
+    x[1000, 0] += 0.05  # an error of 50 noise scales that no mask removes
+    scale = [1e-3, 1e-3]
+    plain = local_polynomial_derivative(x, t, 12)
+    robust = local_polynomial_derivative(x, t, 12, scale=scale)
+    near = slice(985, 1016)
+    # Huber's loss bounds the error's influence (it does not remove it).
+    assert (
+        np.abs(plain[near, 0] - true[near, 0]).max()
+        > 2 * np.abs(robust[near, 0] - true[near, 0]).max()
+    )
+    # The five-sample stencil interpolates: nothing to down-weight, the same numbers.
+    assert np.array_equal(
+        local_polynomial_derivative(x, t, 2, scale=scale), local_polynomial_derivative(x, t, 2)
+    )
+    with pytest.raises(ValueError, match="scale"):
+        local_polynomial_derivative(x, t, 12, scale=[-1.0, 1.0])

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
+from robust_sindy.selection.screening import temporal_screen
 
 da = pytest.importorskip("dask.array")
 
@@ -148,9 +149,10 @@ def test_huber_sindy_differentiates_dask_states_chunk_by_chunk(monkeypatch):
     # with the windows chosen on the sample
     half = model.derivative_windows_
     assert np.array_equal(model.diagnostics_.derivative_half_window, half) and half.min() >= 2
-    whole = rs.HuberSINDy()._differentiate(x, 0.01 * np.arange(len(x)), half)
+    noise = temporal_screen(x[:1500], 0.01 * np.arange(1500)).scale
+    whole = rs.HuberSINDy()._differentiate(x, 0.01 * np.arange(len(x)), half, scale=noise)
     lazy = da.from_array(x, chunks=700).map_overlap(
-        lambda b: rs.HuberSINDy()._differentiate(b, 0.01 * np.arange(len(b)), half),
+        lambda b: rs.HuberSINDy()._differentiate(b, 0.01 * np.arange(len(b)), half, scale=noise),
         depth={0: model_module.DASK_OVERLAP, 1: 0}, boundary="none", dtype=float,
     ).compute()  # fmt: skip
     close = np.isclose(lazy, whole, rtol=1e-6, atol=1e-6).all(axis=1)
