@@ -120,18 +120,20 @@ def _local_fit(x2, t, usable, half_window, degree, scale=None):
         tau = tau / np.where(span > 0, span, 1.0)
         v = tau[..., None] ** np.arange(degree + 1)  # (m, size, d+1)
         xw = x2[idx, k]
-        gram = np.einsum("mja,mjb->mab", v, v)
-        ridge = 1e-12 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None]
-        coef = np.linalg.solve(gram + ridge * eye, np.einsum("mja,mj->ma", v, xw)[..., None])
+
+        def solve(w=None, v=v, xw=xw):
+            """The (weighted) least-squares coefficients of every window."""
+            vw = v if w is None else v * w[..., None]
+            gram = np.einsum("mja,mjb->mab", vw, v)
+            ridge = 1e-12 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None]
+            return np.linalg.solve(gram + ridge * eye, np.einsum("mja,mj->ma", vw, xw)[..., None])
+
+        coef = solve()
         robust = scale is not None and size > degree + 1 and np.isfinite(scale[k])
         for _ in range(_HUBER_STEPS if robust and scale[k] > 0 else 0):
             # An error the temporal screen left unflagged is not spread over the window.
             r = np.abs(xw - (v @ coef)[..., 0])
-            w = np.minimum(1.0, HUBER_C * scale[k] / np.maximum(r, np.finfo(float).tiny))
-            gram = np.einsum("mja,mj,mjb->mab", v, w, v)
-            ridge = 1e-12 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None]
-            rhs = np.einsum("mja,mj->ma", v, w * xw)[..., None]
-            coef = np.linalg.solve(gram + ridge * eye, rhs)
+            coef = solve(np.minimum(1.0, HUBER_C * scale[k] / np.maximum(r, np.finfo(float).tiny)))
         out[:, k] = coef[:, 1, 0] / span[:, 0]  # d/dt of c1 tau at tau = 0
     return out
 

@@ -652,12 +652,11 @@ class HuberSINDy(BaseEstimator):
             raise ValueError(f"u has {u.shape[1]} columns but the model was fitted with {q}")
         return np.hstack([x, u])
 
-    def _differentiate(self, x, t, half_window=None, library=None, scale=None):
+    def _differentiate(self, x, t, half_window=None, scale=None):
         """Derivatives of one trajectory by ``differentiation``.  ``half_window``: of
-        the robust one's local quartics (by default as ``derivative_window`` says, an
-        automatic choice guarded by the ``library`` matrix when given); ``scale``: the
-        states' noise for their Huber fits (by default the temporal screen's of ``x``).
-        """
+        the robust one's local quartics (by default as ``derivative_window`` says);
+        ``scale``: the states' noise for their Huber fits (by default the temporal
+        screen's of ``x``)."""
         how = self.differentiation
         if callable(how):
             out = as_float_array(how(x, t), "differentiation output", (2,))
@@ -668,19 +667,25 @@ class HuberSINDy(BaseEstimator):
         if _is_robust(how):
             screen = temporal_screen(x, t)
             scale = screen.scale if scale is None else scale
-            if half_window is None and self.derivative_window == "auto":
-                half_window = choose_half_window(
-                    screen.repaired, t, ~screen.flags, library=library,
-                    rows=~screen.flags.any(axis=1), scale=scale,
-                )  # fmt: skip
-            return local_polynomial_derivative(
-                screen.repaired,
-                t,
-                half_window=FIXED_HALF_WINDOW if half_window is None else half_window,
-                mask=~screen.flags,
-                scale=scale,
-            )
+            return self._robust_derivative(
+                screen.repaired, t, ~screen.flags, scale, half=half_window
+            )[0]
         return _DIFFERENTIATION[how](x, t)
+
+    def _robust_derivative(self, repaired, t, usable, noise, library=None, half=None):
+        """``differentiation="robust"`` of repaired states (``usable``: the entries the
+        temporal screen left alone; ``noise``: its noise levels) and the half windows
+        used: ``half`` when given, else as ``derivative_window`` says (the automatic
+        choice guarded by the ``library`` matrix when given)."""
+        if half is None:
+            half = np.full(repaired.shape[1], FIXED_HALF_WINDOW)
+            if self.derivative_window == "auto":
+                half = choose_half_window(
+                    repaired, t, usable, library=library, rows=usable.all(axis=1),
+                    scale=noise,
+                )  # fmt: skip
+        d = local_polynomial_derivative(repaired, t, half, mask=usable, scale=noise)
+        return d, half
 
     # ------------------------------------------------------------------ fitting
     def fit(self, x, t=None, x_dot=None, u=None, feature_names=None) -> HuberSINDy:
@@ -1090,7 +1095,7 @@ class HuberSINDy(BaseEstimator):
         of its magnitude: constant up to rounding) has derivative 0 there, not the
         rounding of its differences, which standardisation would blow up to unit size.
         """
-        out, windows = [], [self.derivative_windows_]
+        out, windows = [], [np.zeros(xs[0].shape[1], dtype=int)]
         for seg, a, ti in zip(_segments(xs), xs, ts, strict=True):
             states = a if self.temporal_ is None else self.temporal_.repaired[seg]
             if _is_robust(self.differentiation):
@@ -1100,14 +1105,8 @@ class HuberSINDy(BaseEstimator):
                 else:
                     repaired, usable = states, ~entry_flags[seg]
                     noise = self.temporal_.scale
-                half = np.full(a.shape[1], FIXED_HALF_WINDOW)
-                if self.derivative_window == "auto":
-                    half = choose_half_window(
-                        repaired, ti, usable, library=theta[seg], rows=usable.all(axis=1),
-                        scale=noise,
-                    )  # fmt: skip
+                d, half = self._robust_derivative(repaired, ti, usable, noise, theta[seg])
                 windows.append(half)
-                d = local_polynomial_derivative(repaired, ti, half, mask=usable, scale=noise)
             else:
                 d = self._differentiate(states, ti)
             still = np.ptp(states, axis=0) <= ALIAS_RTOL * np.max(np.abs(states), axis=0)
