@@ -69,7 +69,32 @@ def test_masked_solve_solves_each_support_block_and_zeroes_the_rest():
     M[0][:, 1] = M[0][:, 0]
     M[0][1, :] = M[0][0, :]
     S[:2, 0] = True
-    assert nw.masked_solve(M, rhs, S)[1][0]
+    d, deficient = nw.masked_solve(M, rhs, S)
+    assert deficient[0]
+    s = S[:, 0]
+    np.testing.assert_allclose(d[s, 0], np.linalg.pinv(M[0][np.ix_(s, s)]) @ rhs[s, 0])
+
+
+def test_masked_solve_batches_supports_of_every_size():
+    # Blocks are gathered to the largest support's size: an empty support, a full one
+    # and sizes in between, in one batch, each solved as on its own.
+    rng = np.random.default_rng(2)
+    p, k = 9, 5
+    B = rng.normal(size=(k, 40, p)) * np.logspace(-1, 1, p)  # diagonals apart
+    M = np.einsum("kia,kib->kab", B, B)
+    rhs = rng.normal(size=(p, k))
+    S = np.zeros((p, k), dtype=bool)
+    S[:, 1] = True
+    S[[2, 7], 2] = True
+    S[rng.permutation(p)[:5], 3] = True
+    S[4, 4] = True
+    d, deficient = nw.masked_solve(M, rhs, S)
+    assert not deficient.any()
+    assert np.all(d[:, 0] == 0)
+    for j in range(1, k):
+        s = S[:, j]
+        np.testing.assert_allclose(d[s, j], np.linalg.solve(M[j][np.ix_(s, s)], rhs[s, j]))
+        assert np.all(d[~s, j] == 0)
 
 
 @pytest.mark.parametrize(

@@ -337,27 +337,41 @@ class GramCache:
 def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
     """Solve ``M_k[S_k, S_k] d = rhs[S_k, k]`` for every column ``k`` (batched).
 
-    ``M`` is (k, p, p), ``rhs`` and ``S`` (p, k).  Off the support the matrix is
-    replaced by a multiple of the identity (the largest diagonal entry on ``S``, so the
-    eigenvalue cut refers to the support's own scale) and the right-hand side by zero.
+    ``M`` is (k, p, p), ``rhs`` and ``S`` (p, k).  Each column's block ``M[S, S]`` is
+    gathered into the first ``|S_k|`` rows and columns of a batch as large as the
+    largest support (the cost is that of the supports, not of the library), padded
+    with a multiple of the identity (the largest diagonal entry on ``S``, so the
+    eigenvalue cut refers to the support's own scale) and a zero right-hand side.
     Returns the minimum-norm solution with eigenvalues below ``1e-11`` of the largest cut
     (``d`` zero off ``S``) and a mask of the columns where a cut was needed.
     """
     St = S.T
-    Mm = np.where(St[:, :, None] & St[:, None, :], M, 0.0)
-    diag = np.einsum("kii->ki", M)
-    top = np.max(np.where(St, diag, 0.0), axis=1)
+    k, p = St.shape
+    sizes = St.sum(axis=1)
+    s = max(int(sizes.max(initial=0)), 1)
+    # Per column, the support's indices first (in order), then the others.
+    idx = np.argsort(~St, axis=1, kind="stable")[:, :s]
+    valid = np.arange(s)[None, :] < sizes[:, None]  # (k, s)
+    cols = np.arange(k)[:, None]
+    Mm = M[cols[:, :, None], idx[:, :, None], idx[:, None, :]]
+    Mm = np.where(valid[:, :, None] & valid[:, None, :], Mm, 0.0)
+    diag = np.einsum("kii->ki", Mm)
+    top = np.max(np.where(valid, diag, 0.0), axis=1)
     top = np.where(top > 0, top, 1.0)
-    idx = np.arange(M.shape[1])
-    Mm[:, idx, idx] = np.where(St, diag, top[:, None])
+    pos = np.arange(s)
+    Mm[:, pos, pos] = np.where(valid, diag, top[:, None])
     # Normalised to a unit diagonal maximum: the eigen-solver sees no tiny or huge
     # entries (reweighted steps with delta far below the residuals have weights ~1e-300).
     w, V = np.linalg.eigh(Mm / top[:, None, None])
     keep = w > _EIG_CUT * np.maximum(w[:, -1:], 0.0)
-    b = np.where(S, rhs, 0.0).T
+    b = np.where(valid, rhs.T[cols, idx], 0.0)
     c = np.einsum("kji,kj->ki", V, b)
     c = np.where(keep, c / np.where(keep, w * top[:, None], 1.0), 0.0)
-    return np.where(S, np.einsum("kij,kj->ik", V, c), 0.0), ~keep.all(axis=1)
+    block = np.einsum("kij,kj->ki", V, c)
+    d = np.zeros((p, k))
+    rows, where = np.nonzero(valid)
+    d[idx[rows, where], rows] = block[rows, where]
+    return d, ~keep.all(axis=1)
 
 
 def direction(A, G, T, r, delta, lam, x, g, free, mu, cache=None, ids=None):
