@@ -230,14 +230,21 @@ class EnsembleSINDy(BaseEstimator):
         x, t, x_dot, u, frame_names = _from_frames(x, t, x_dot, u)
         names = feature_names if feature_names is not None else frame_names
         xs, ts, ds, us = base._trajectories(x, t, x_dot, u, need_t=self.sampling == "blocks")
-        if self.sampling == "rows" and ds is None:
-            ts = base._times(t, xs, isinstance(x, (list, tuple)))
-            ds = [base._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
         # The full library: the coordinates of every model's coefficients.
         n, q = xs[0].shape[1], 0 if us is None else us[0].shape[1]
         names = input_names(names, n, q)
         template = base.library if base.library is not None else PolynomialLibrary()
         self.library_ = clone(template).fit(np.zeros((1, n + q)), input_names=names)
+        if self.sampling == "rows" and ds is None:
+            # Once for all models, as a single fit computes them (windows guarded by
+            # the library).
+            ts = base._times(t, xs, isinstance(x, (list, tuple)))
+            ds = [
+                base._differentiate(
+                    a, ti, library=self.library_.transform(a if b is None else np.hstack([a, b]))
+                )
+                for a, b, ti in zip(xs, [None] * len(xs) if us is None else us, ts, strict=True)
+            ]
         self.feature_names_ = names
         self.n_control_features_ = q
         p = self.library_.n_output_features_

@@ -443,10 +443,10 @@ class HuberSINDy(BaseEstimator):
         (``selection_tol_``) is at least the relative noise of the noisiest library
         column (the states' noise, measured by the temporal screen, carried through
         the library): a term contributing less than the noise of the columns it is
-        built from cannot be told from errors in the variables.  With measured
-        derivatives (``x_dot`` given), a term under that floor is kept when the data
-        vouch for it: its robust t statistic is at least
-        :data:`~robust_sindy.selection.significance.SIGNIFICANCE`.
+        built from cannot be told from errors in the variables unless the data vouch
+        for it.  A term under that floor is kept when its robust t statistic is at
+        least :data:`~robust_sindy.selection.significance.SIGNIFICANCE` (measured
+        derivatives, ``x_dot`` given) or ``SIGNIFICANCE_ESTIMATED`` (estimated ones).
     n_lams : int
         Points on the ``lam`` path.
     method : {"admm", "cvxpy", "stls", "ols"}
@@ -652,11 +652,12 @@ class HuberSINDy(BaseEstimator):
             raise ValueError(f"u has {u.shape[1]} columns but the model was fitted with {q}")
         return np.hstack([x, u])
 
-    def _differentiate(self, x, t, half_window=None, scale=None):
+    def _differentiate(self, x, t, half_window=None, scale=None, library=None):
         """Derivatives of one trajectory by ``differentiation``.  ``half_window``: of
-        the robust one's local quartics (by default as ``derivative_window`` says);
-        ``scale``: the states' noise for their Huber fits (by default the temporal
-        screen's of ``x``)."""
+        the robust one's local quartics (by default as ``derivative_window`` says, the
+        automatic choice guarded by the ``library`` matrix of ``x`` when given, as in
+        ``fit``); ``scale``: the states' noise for their Huber fits (by default the
+        temporal screen's of ``x``)."""
         how = self.differentiation
         if callable(how):
             out = as_float_array(how(x, t), "differentiation output", (2,))
@@ -668,7 +669,7 @@ class HuberSINDy(BaseEstimator):
             screen = temporal_screen(x, t)
             scale = screen.scale if scale is None else scale
             return self._robust_derivative(
-                screen.repaired, t, ~screen.flags, scale, half=half_window
+                screen.repaired, t, ~screen.flags, scale, library, half_window
             )[0]
         return _DIFFERENTIATION[how](x, t)
 
@@ -1012,10 +1013,9 @@ class HuberSINDy(BaseEstimator):
                 delta_s,
                 criterion=self.criterion,
                 n_lams=self.n_lams,
-                # With measured derivatives, terms under the noise floor that the data
-                # vouch for are kept (the final selection tests them); estimated
-                # derivatives carry errors no standard error accounts for.
-                tol=self.selection_tol if measured else self.selection_tol_,
+                # Terms under the noise floor are proposed: the final selection keeps
+                # those the data vouch for (a higher bar for estimated derivatives).
+                tol=self.selection_tol,
                 segments=_segments_of(keep, xs),
                 method=self.method,
                 solver=self.solver,
@@ -1061,7 +1061,7 @@ class HuberSINDy(BaseEstimator):
             kept = (theta[keep], y[keep], th, yk)  # user units, then standardised
             segments = _segments_of(keep, xs)
             coef, ratio = self._final_selection(
-                *kept, coef, delta_s, noise, huber_method, options, segments if measured else None
+                *kept, coef, delta_s, noise, huber_method, options, segments, measured
             )
             bar = SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED
             coef, pruned = self._prune(*kept, coef, delta_s, options, segments, bar)
@@ -1178,14 +1178,16 @@ class HuberSINDy(BaseEstimator):
             **options,
         )
 
-    def _final_selection(self, theta, y, th, yk, coef, delta_s, noise, method, options, segments):
-        """On the certified refit: drop the terms below ``selection_tol_`` (with
-        ``segments``, the samples of each trajectory, given for measured derivatives:
-        only those whose robust t is below ``SIGNIFICANCE`` or whose contribution is
-        below ``selection_tol``) and those within ``BIAS_MARGIN`` of their
-        errors-in-variables bias (with the screen; the signed first-order bias for
-        measured derivatives, its triangle bound for estimated ones), refitting after
-        each, until neither drops anything.  ``theta``, ``y`` are the
+    def _final_selection(
+        self, theta, y, th, yk, coef, delta_s, noise, method, options, segments, measured
+    ):
+        """On the certified refit: drop the terms below ``selection_tol``, and those
+        below ``selection_tol_`` whose robust t (``segments``: the samples of each
+        trajectory) is below ``SIGNIFICANCE`` (``measured`` derivatives) or
+        ``SIGNIFICANCE_ESTIMATED`` (estimated ones), and those within ``BIAS_MARGIN``
+        of their errors-in-variables bias (with the screen; the signed first-order bias
+        for measured derivatives, its triangle bound for estimated ones), refitting
+        after each, until neither drops anything.  ``theta``, ``y`` are the
         kept samples in user units, ``th``, ``yk`` the same standardised, ``delta_s``
         and ``method`` the Huber threshold (standardised) and method of the drops.
         Returns the coefficients and the bias ratios of the terms the latter dropped
@@ -1195,14 +1197,15 @@ class HuberSINDy(BaseEstimator):
         ynorm = np.maximum(np.linalg.norm(yk, axis=0), np.finfo(float).tiny)
         gram = None if noise is None else noise_gram(noise)
         ratio = np.full(coef.shape, np.nan)
+        bar = SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED
         for _ in range(STAGE_ROUNDS):
             standard = scaler.coef_to_standard(coef)
             contrib = np.abs(standard) * col / ynorm
             small = (coef != 0) & (contrib < self.selection_tol_)
-            if segments is not None:
+            if small.any():
                 # Under the noise floor, a term stays only when the data vouch for it.
                 tstat = robust_t(th, yk, standard, delta_s, segments)
-                small &= (contrib < self.selection_tol) | ~(tstat >= SIGNIFICANCE)
+                small &= (contrib < self.selection_tol) | ~(tstat >= bar)
             if small.any():
                 coef[small] = 0.0
                 coef = self._refit(theta, y, coef, options)
@@ -1211,7 +1214,7 @@ class HuberSINDy(BaseEstimator):
             # Terms the errors in the variables could have selected are not identified.
             _, new = drop_biased_terms(
                 th, yk, scaler.coef_to_standard(coef), delta_s, gram,
-                signed=segments is not None, method=method, **pilot_budget(method),
+                signed=measured, method=method, **pilot_budget(method),
             )  # fmt: skip
             dropped = np.isfinite(new)
             if dropped.any():
@@ -1497,7 +1500,11 @@ class HuberSINDy(BaseEstimator):
                 f"x has {sum(a.shape[0] for a in xs)} samples: a score needs at least 2"
             )
         if ds is None:
-            ds = [self._differentiate(a, ti) for a, ti in zip(xs, ts, strict=True)]
+            # The derivatives fit would have computed: windows guarded by the library.
+            ds = [
+                self._differentiate(a, ti, library=self.library_.transform(self._inputs(a, b)))
+                for (a, b), ti in zip(_pairs(xs, us), ts, strict=True)
+            ]
         pred = np.vstack([self.predict(a, b) for a, b in _pairs(xs, us)])
         y = np.vstack(ds)
         ss_res = ((y - pred) ** 2).sum(axis=0)

@@ -7,6 +7,7 @@ import pytest
 
 from robust_sindy import HuberSINDy, PolynomialLibrary
 from robust_sindy.differentiation import choose_half_window, local_polynomial_derivative
+from robust_sindy.selection.screening import temporal_screen
 from robust_sindy.systems import Lorenz
 
 
@@ -142,6 +143,16 @@ def test_library_guard_keeps_a_window_bias_out_of_the_regression():
         model.fit(x, data.t)
     assert np.array_equal(model.derivative_windows_, guarded)
     assert np.array_equal(model.support_, truth)
+    # score() differentiates the states it is given as fit does: guarded windows.
+    screen = temporal_screen(x, data.t)
+    fitted = local_polynomial_derivative(
+        screen.repaired, data.t, guarded, mask=~screen.flags, scale=screen.scale
+    )
+    wide = local_polynomial_derivative(
+        screen.repaired, data.t, by_states, mask=~screen.flags, scale=screen.scale
+    )
+    assert model.score(x, data.t) == model.score(x, data.t, x_dot=fitted)
+    assert model.score(x, data.t) != model.score(x, data.t, x_dot=wide)
     with pytest.raises(ValueError, match="library"):
         choose_half_window(x, data.t, library=theta[:-1])
     with pytest.raises(ValueError, match="rows"):
