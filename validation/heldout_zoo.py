@@ -12,13 +12,18 @@ PySINDy's STLSQ given the same data:
 * ``bursts``: two runs of 4 % of the samples, Gaussian 0.5 (three of 2 %, 0.3);
 * ``dropouts``: 10 % of the samples read as 0 (5 %).
 
+``--set NAME=VALUE`` (repeatable) replaces one of these parameters (a field of
+``robust_sindy.zoo.Contamination``; ``spikes_range`` as ``LOW,HIGH``), e.g.
+``--set base_noise=0.01 --set heavy_dof=1``.
+
 Writes ``heldout.csv`` and ``heldout.md`` to the output folder.
 
     python validation/heldout_zoo.py [--systems 16] [--seed 3] [--draw 2026]
-    [--samples 2000] [--out validation/results/heldout]
+    [--samples 2000] [--set NAME=VALUE ...] [--out validation/results/heldout]
 """
 
 import argparse
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -43,14 +48,35 @@ HELDOUT = zoo.Contamination(
 )
 
 
-def _case(system, family, derivatives, seed, samples):
+def _case(system, family, derivatives, seed, samples, contamination):
     try:
         return zoo.run_case(
             system, family, derivatives, seed, methods=("huber", "stlsq"),
-            n_samples=samples, contamination=HELDOUT,
+            n_samples=samples, contamination=contamination,
         )  # fmt: skip
     except RuntimeError:  # an integration that fails is left out, as in the zoo
         return []
+
+
+def contamination_with(settings) -> zoo.Contamination:
+    """``HELDOUT`` with the ``NAME=VALUE`` strings of ``settings`` applied."""
+    fields = {f.name: f for f in dataclasses.fields(zoo.Contamination)}
+    changes = {}
+    for item in settings or []:
+        name, sep, value = item.partition("=")
+        if not sep or name not in fields:
+            raise SystemExit(
+                f"--set expects NAME=VALUE with NAME one of {sorted(fields)}; got {item!r}"
+            )
+        try:
+            if name == "spikes_range":
+                low, high = (float(v) for v in value.split(","))
+                changes[name] = (low, high)
+            else:
+                changes[name] = (int if name == "bursts" else float)(value)
+        except ValueError:
+            raise SystemExit(f"--set {name}: cannot read {value!r} as a number") from None
+    return dataclasses.replace(HELDOUT, **changes)
 
 
 def main(argv=None):
@@ -59,12 +85,16 @@ def main(argv=None):
     parser.add_argument("--seed", type=int, default=3)
     parser.add_argument("--draw", type=int, default=2026, help="seed of the systems' draw")
     parser.add_argument("--samples", type=int, default=2000, help="samples per trajectory")
+    parser.add_argument(
+        "--set", action="append", metavar="NAME=VALUE", help="replace a contamination parameter"
+    )
     parser.add_argument("--out", default="validation/results/heldout")
     args = parser.parse_args(argv)
+    contamination = contamination_with(args.set)
     systems = zoo.polynomial_systems()
     pick = np.random.default_rng(args.draw).choice(len(systems), args.systems, replace=False)
     cases = [
-        (systems[i], f, d, args.seed, args.samples)
+        (systems[i], f, d, args.seed, args.samples, contamination)
         for i in pick
         for f in zoo.FAMILIES
         for d in zoo.DERIVATIVES
@@ -82,7 +112,9 @@ def main(argv=None):
         "# Held-out zoo check",
         "",
         f"Command: `python validation/heldout_zoo.py --systems {args.systems} "
-        f"--seed {args.seed} --draw {args.draw} --samples {args.samples}`. "
+        f"--seed {args.seed} --draw {args.draw} --samples {args.samples}"
+        + "".join(f" --set {item}" for item in args.set or [])
+        + "`. "
         f"Systems: {', '.join(sorted(df.system.unique()))}. "
         "Contamination parameters: see the script's docstring. Cells: exact-support rate.",
         "",
