@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal
 
+from ._scaling import robust_scale
 from ._validation import as_float_array, check_int
 from .simulate import check_time
 
@@ -179,7 +180,6 @@ def choose_half_window(
 
     Returns an int array (n,) (a 1-element array for 1-D ``x``).
     """
-    from ._scaling import robust_scale
     from .selection.screening import _clean_neighbours, _loo_predict
 
     degree = check_int(degree, "degree", 1)
@@ -224,8 +224,6 @@ def choose_half_window(
 def _fitted_rows(a, y, rows, cutoff: float = 3.5, rounds: int = 5) -> np.ndarray:
     """``rows`` without the samples whose residual of ``y`` on the columns of ``a`` (by
     least squares on the rows kept so far) exceeds ``cutoff`` robust scales."""
-    from ._scaling import robust_scale
-
     keep = rows.copy()
     for _ in range(rounds):
         coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
@@ -252,7 +250,6 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
     (see :func:`choose_half_window`)."""
     import scipy.stats
 
-    from ._scaling import robust_scale
     from .selection.criteria import correlation_time
 
     m, n = x2.shape

@@ -29,6 +29,7 @@ from .model import (
     HuberSINDy,
     IdentificationWarning,
     _from_frames,
+    _pairs,
     input_names,
     integrate,
     simulation_inputs,
@@ -243,7 +244,7 @@ class EnsembleSINDy(BaseEstimator):
                 base._differentiate(
                     a, ti, library=self.library_.transform(a if b is None else np.hstack([a, b]))
                 )
-                for a, b, ti in zip(xs, [None] * len(xs) if us is None else us, ts, strict=True)
+                for (a, b), ti in zip(_pairs(xs, us), ts, strict=True)
             ]
         self.feature_names_ = names
         self.n_control_features_ = q
