@@ -16,6 +16,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal
 
+from ._certificates import column_norms
 from ._scaling import robust_scale
 from ._validation import as_float_array, check_int
 from .simulate import check_time
@@ -262,6 +263,10 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
     out = np.full(n, cands[0], dtype=int)
     if rows.sum() <= a.shape[1] or not np.all(np.isfinite(a[rows])):
         return out  # nothing to test with: the narrowest window
+    # Columns of unit norm: the rank cuts below then do not depend on the units of the
+    # states (the columns' span, and so the test, is the same).
+    norms = column_norms(a[rows])
+    a = a / np.where(norms > 0, norms, 1.0)
     for k in range(n):
         steps = [h for h in cands if h <= upper[k]]
         if len(steps) < 2:

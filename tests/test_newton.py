@@ -5,6 +5,7 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
+from robust_sindy._losses import huber_psi
 from robust_sindy.selection import lambda_max
 from robust_sindy.solvers import newton as nw
 
@@ -173,3 +174,63 @@ def test_near_lad_points_are_certified_by_newton_without_the_admm():
     out = nw.solve_newton(theta, y, delta, lam)
     assert out.converged.all() and not out.info["fallback"].any()
     assert rs.kkt_violation(theta, y, out.coef, delta, lam).max() <= 1e-8
+
+
+def _offset_cubic(seed, m=1500):
+    """Cubic monomials of three states 1 +- 0.02: columns nearly collinear (condition
+    number near 3e6, 1e13 for their Gram matrix), two sparse columns, 10 % outliers."""
+    rng = np.random.default_rng(seed)
+    x = 1.0 + 0.02 * rng.standard_normal((m, 3))
+    theta = rs.PolynomialLibrary(degree=3).fit(x).transform(x)
+    coef = np.zeros((theta.shape[1], 2))
+    coef[[1, 5, 9], 0] = [1.0, -2.0, 0.5]
+    coef[[2, 7], 1] = [0.7, 1.5]
+    y = theta @ coef + 1e-3 * rng.standard_normal((m, 2))
+    bad = rng.choice(m, m // 10, replace=False)
+    y[bad] += 0.2 * rng.standard_normal((bad.size, 2))
+    return theta, y
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_an_ill_conditioned_library_is_certified_by_newton_itself(seed):
+    # The Gram systems' eigenvalue cut drops the directions along which the optimum
+    # still moves; steps from the rows themselves keep them, so Newton certifies in
+    # tens of steps where it used to stall and hand the column to an ADMM that ran out
+    # of iterations (uncertified).
+    theta, y = _offset_cubic(seed)
+    assert nw.prepare(theta).condition() > 1e6
+    res = rs.fit(theta, y, delta=1.5e-3, lam=0.0)
+    assert res.converged and res.kkt.max() <= 1e-8
+    assert not res.info["fallback"].any()
+    assert all(msg.startswith("certified by the active-set Newton") for msg in res.messages)
+    ref = rs.fit(theta, y, method="cvxpy", delta=1.5e-3, lam=0.0)
+    assert np.all((res.objective - ref.objective) / np.abs(ref.objective) <= 1e-8)
+
+
+def test_row_direction_is_the_gram_direction_where_both_resolve():
+    # Well conditioned: the step from the rows' singular values is the one from the
+    # Gram system, for the inlier piece (outliers' +-delta in the right-hand side), the
+    # reweighted step, off-support coordinates and a Levenberg-Marquardt term alike.
+    theta, y = random_problem(3, n=1, outliers=0.2)
+    prepared = nw.prepare(theta)
+    A, G, T = prepared.A, prepared.G, 1.0 / prepared.a_norms**2
+    p = G.shape[0]
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=p)
+    x[:2] = 0.0
+    r = y[:, 0] - A @ x
+    delta = float(np.median(np.abs(r)))
+    g = A.T @ huber_psi(r, delta)
+    lam = np.full(p, 0.1 * np.abs(g).max())
+    S = np.abs(x + T * g) > T * lam
+    sigma = np.sign(x + T * g)
+    off = np.where(S, 0.0, x)
+    for w in [(np.abs(r) <= delta).astype(float), np.minimum(1.0, delta / np.abs(r))]:
+        for mu in [0.0, 1e-2]:
+            M = (A[np.arange(r.size)] * w[:, None]).T @ A[np.arange(r.size)]
+            rhs = g - lam * sigma + M @ off
+            expect = np.zeros(p)
+            expect[S] = np.linalg.solve(M[np.ix_(S, S)] + mu * np.eye(S.sum()), rhs[S])
+            d, cut = nw.row_direction(A, w, r, S, x, lam * sigma, delta, mu, None)
+            assert not cut
+            np.testing.assert_allclose(d, expect, rtol=1e-9, atol=1e-12 * np.abs(expect).max())

@@ -3,7 +3,7 @@ factors and nothing else (the selected support is identical)."""
 
 import numpy as np
 import pytest
-from hypothesis import HealthCheck, given, settings
+from hypothesis import HealthCheck, example, given, settings
 from hypothesis import strategies as st
 
 from robust_sindy import HuberSINDy
@@ -37,6 +37,9 @@ def _expected(model, d, c):
     suppress_health_check=[HealthCheck.function_scoped_fixture],
 )
 @given(d=st.tuples(FACTOR, FACTOR, FACTOR), c=FACTOR, states_only=st.booleans())
+# Library columns 1e10 apart in scale: a rank cut on the raw library (not on unit
+# columns) chose another derivative window for the second state.
+@example(d=(366.0, 0.001953125, 1.0), c=1.0, states_only=True)
 def test_support_is_identical_under_rescaling_of_states_and_time(lorenz_run, d, c, states_only):
     data, noisy, library, base, from_states = lorenz_run
     d = np.array(d)

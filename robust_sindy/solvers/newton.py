@@ -28,10 +28,14 @@ each step also refines the previous one and an exact fit keeps residuals at roun
 level although the systems are normal equations.  When the inliers do not determine
 ``xi_S`` (fewer inliers than terms, a least-absolute-deviation-like piece) the step is
 the iteratively-reweighted least-squares one (weights ``min(1, delta / |r_i|)``, a
-quadratic majoriser of the Huber loss).  Every step is safeguarded: the full step if it
-decreases the objective enough (Armijo), else the exact minimiser along the direction
-(:func:`line_search`), and a proximal-gradient step when the Newton direction is no
-descent direction.  A column ends when its relative KKT violation
+quadratic majoriser of the Huber loss).  Where a Gram system is numerically singular
+(an eigenvalue below ``1e-11`` of the largest), the step is recomputed from the
+weighted rows by a singular value decomposition (:func:`row_direction`), whose
+condition number is the square root of the Gram matrix's: in an ill-conditioned library
+the cut would drop the directions along which the optimum still moves.  Every step is
+safeguarded: the full step if it decreases the objective enough (Armijo), else the
+exact minimiser along the direction (:func:`line_search`), and a proximal-gradient step
+when the Newton direction is no descent direction.  A column ends when its relative KKT violation
 (:mod:`robust_sindy._certificates`) is below ``tol``: the certificate decides, not the
 factorisation.  Columns it cannot certify within its step budget are handed to the ADMM
 (:mod:`robust_sindy.solvers.admm`), warm-started from the Newton point.
@@ -52,7 +56,15 @@ from .._certificates import column_norms, kkt_from_gradient, rounding_free
 from .._losses import huber_psi, soft_threshold
 from ._base import SolverOutput
 
-__all__ = ["GramCache", "Prepared", "line_search", "newton", "prepare", "solve_newton"]
+__all__ = [
+    "GramCache",
+    "Prepared",
+    "line_search",
+    "newton",
+    "prepare",
+    "row_direction",
+    "solve_newton",
+]
 
 _EIG_CUT = 1e-11  # relative eigenvalue cut of the Newton systems
 _MAX_STEP = 2.0**20  # longest line-search step
@@ -399,14 +411,77 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu, cache=None, ids=None):
         return masked_solve(M + mu[cols, None, None] * eye, rhs, S[:, cols])
 
     everything = np.arange(r.shape[1])
-    d, deficient = solve(np.abs(r) <= delta, everything)
+    inlier = np.abs(r) <= delta
+    d, deficient = solve(inlier, everything)
+    lam_sigma = lam * sigma
+    # Where the Gram system needed a cut, the rows themselves may still determine the
+    # step: their singular values are the square roots of its eigenvalues (rare).
+    for k in np.flatnonzero(deficient):
+        d[:, k], deficient[k] = row_direction(
+            A, inlier[:, k].astype(float), r[:, k], S[:, k], x[:, k], lam_sigma[:, k],
+            delta[k], mu[k], d[:, k],
+        )  # fmt: skip
     if deficient.any():
         # Too few inliers to fix the support's coefficients: the reweighted
         # least-squares step, whose quadratic model majorises the Huber loss.
         j = everything[deficient]
         absr = np.maximum(np.abs(r[:, j]), np.finfo(float).tiny)
-        d[:, j] = solve(np.minimum(1.0, delta[j] / absr), j)[0]
+        weights = np.minimum(1.0, delta[j] / absr)
+        d[:, j], cut = solve(weights, j)
+        for i in np.flatnonzero(cut):
+            k = j[i]
+            d[:, k] = row_direction(
+                A, weights[:, i], r[:, k], S[:, k], x[:, k], lam_sigma[:, k], delta[k],
+                mu[k], d[:, k],
+            )[0]  # fmt: skip
     return np.where(S, d, -x)
+
+
+#: Relative singular-value cut of :func:`row_direction` (the Gram systems' eigenvalue cut
+#: ``1e-11`` is a singular-value cut near ``3e-6``: rows resolve 3e4 times further).
+_SVD_CUT = 1e-10
+
+
+def row_direction(A, w, r, S, x, lam_sigma, delta, mu, fallback):
+    """The Newton direction of one column from the weighted rows, not their Gram matrix.
+
+    Solves ``(A_S^T W A_S + mu I) d_S = g_S - lam_S sigma_S + A_S^T W A_Sbar x_Sbar`` (the
+    system of :func:`direction`, weights ``w`` (m,) in ``[0, 1]``) by a singular value
+    decomposition of ``B = W^(1/2) A_S``: with ``psi = W r + e`` (``e`` the outliers'
+    ``+-delta`` for 0/1 weights, zero for the reweighted step), the right-hand side is
+    ``B^T b + c``, ``b = W^(1/2) (r + A_Sbar x_Sbar)``, ``c = A_S^T e - lam_S sigma_S``,
+    and ``d_S = V [(s U^T b + V^T c) / (s^2 + mu)]``.  Forming the Gram matrix squares
+    the condition number: in an ill-conditioned library (states far from zero, monomials
+    of them nearly collinear) its eigenvalue cut drops the very directions along which
+    the optimum still moves, and the iteration stalls uncertified; the rows keep them
+    (singular values down to ``1e-10`` of the largest).  Returns the direction (p,) and
+    whether a cut was still needed; ``fallback`` where the decomposition fails.
+    """
+    rows = np.flatnonzero(w > 0)
+    if rows.size < np.count_nonzero(S) or not S.any():
+        return fallback, True  # fewer rows than unknowns: rank-deficient whatever they are
+    sw = np.sqrt(w[rows])
+    top = sw.max()
+    sw = sw / top  # the largest weight 1: no underflow of the squared singular values
+    Ar = A[rows]
+    off = np.where(S, 0.0, x)
+    B = sw[:, None] * Ar[:, S]
+    b = sw * (r[rows] + Ar @ off)
+    e = huber_psi(r, delta) - w * r
+    with np.errstate(over="ignore", invalid="ignore", divide="ignore"):
+        c = ((A.T @ e)[S] - lam_sigma[S]) / top**2
+        try:
+            U, sv, Vt = np.linalg.svd(B, full_matrices=False)
+        except np.linalg.LinAlgError:
+            return fallback, True
+        keep = sv > _SVD_CUT * sv[0] if sv.size else np.zeros(0, dtype=bool)
+        den = np.where(keep, sv**2 + mu / top**2, 1.0)
+        coef = np.where(keep, (sv * (U.T @ b) + Vt @ c) / den, 0.0)
+        d = np.zeros_like(x)
+        d[S] = Vt.T @ coef
+    if not np.all(np.isfinite(d)):
+        return fallback, True
+    return d, bool(not keep.all() or keep.size < np.count_nonzero(S))
 
 
 def column_objective(r, x, delta, lam):
