@@ -42,7 +42,9 @@ factorisation.  Columns it cannot certify within its step budget are handed to t
 
 One step costs three passes over ``Theta`` for all columns together (residual,
 gradient, the direction's image), ``|changed| p^2`` for the Gram update (``|O| p^2``
-when formed afresh) and a ``|S|``-sized eigen-decomposition per column.
+when formed afresh) and a ``|S|``-sized eigen-decomposition per column; where that
+needs a cut, a singular value decomposition of the weighted rows on the support
+(``|rows| |S|^2``).
 """
 
 from __future__ import annotations
