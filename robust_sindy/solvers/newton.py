@@ -35,9 +35,9 @@ condition number is the square root of the Gram matrix's: in an ill-conditioned 
 the cut would drop the directions along which the optimum still moves.  Every step is
 safeguarded: the full step if it decreases the objective enough (Armijo), else the
 exact minimiser along the direction (:func:`line_search`), and a proximal-gradient step
-when the Newton direction is no descent direction.  A column ends when its relative KKT violation
-(:mod:`robust_sindy._certificates`) is below ``tol``: the certificate decides, not the
-factorisation.  Columns it cannot certify within its step budget are handed to the ADMM
+when the Newton direction is no descent direction.  A column ends when its relative KKT
+violation (:mod:`robust_sindy._certificates`) is below ``tol``: the certificate decides,
+not the factorisation.  Columns it cannot certify within its step budget are handed to the ADMM
 (:mod:`robust_sindy.solvers.admm`), warm-started from the Newton point.
 
 One step costs three passes over ``Theta`` for all columns together (residual,
@@ -416,13 +416,16 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu, cache=None, ids=None):
     inlier = np.abs(r) <= delta
     d, deficient = solve(inlier, everything)
     lam_sigma = lam * sigma
+
+    def from_rows(k, weights):
+        return row_direction(
+            A, weights, r[:, k], S[:, k], x[:, k], lam_sigma[:, k], delta[k], mu[k], d[:, k]
+        )
+
     # Where the Gram system needed a cut, the rows themselves may still determine the
     # step: their singular values are the square roots of its eigenvalues (rare).
     for k in np.flatnonzero(deficient):
-        d[:, k], deficient[k] = row_direction(
-            A, inlier[:, k].astype(float), r[:, k], S[:, k], x[:, k], lam_sigma[:, k],
-            delta[k], mu[k], d[:, k],
-        )  # fmt: skip
+        d[:, k], deficient[k] = from_rows(k, inlier[:, k].astype(float))
     if deficient.any():
         # Too few inliers to fix the support's coefficients: the reweighted
         # least-squares step, whose quadratic model majorises the Huber loss.
@@ -431,11 +434,7 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu, cache=None, ids=None):
         weights = np.minimum(1.0, delta[j] / absr)
         d[:, j], cut = solve(weights, j)
         for i in np.flatnonzero(cut):
-            k = j[i]
-            d[:, k] = row_direction(
-                A, weights[:, i], r[:, k], S[:, k], x[:, k], lam_sigma[:, k], delta[k],
-                mu[k], d[:, k],
-            )[0]  # fmt: skip
+            d[:, j[i]] = from_rows(j[i], weights[:, i])[0]
     return np.where(S, d, -x)
 
 
@@ -476,14 +475,14 @@ def row_direction(A, w, r, S, x, lam_sigma, delta, mu, fallback):
             U, sv, Vt = np.linalg.svd(B, full_matrices=False)
         except np.linalg.LinAlgError:
             return fallback, True
-        keep = sv > _SVD_CUT * sv[0] if sv.size else np.zeros(0, dtype=bool)
+        keep = sv > _SVD_CUT * sv[0]  # |S| values: at least as many rows as terms
         den = np.where(keep, sv**2 + mu / top**2, 1.0)
         coef = np.where(keep, (sv * (U.T @ b) + Vt @ c) / den, 0.0)
         d = np.zeros_like(x)
         d[S] = Vt.T @ coef
     if not np.all(np.isfinite(d)):
         return fallback, True
-    return d, bool(not keep.all() or keep.size < np.count_nonzero(S))
+    return d, bool(not keep.all())
 
 
 def column_objective(r, x, delta, lam):
