@@ -27,6 +27,7 @@ __all__ = [
     "finite_difference",
     "local_polynomial_derivative",
     "savgol_derivative",
+    "unresolved_derivatives",
 ]
 
 #: Half widths (samples on each side of a sample) among which
@@ -297,6 +298,87 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
                 break
             out[k], prev = h, cur
     return out
+
+
+def _window_weights(t, idx, degree):
+    """The weights (m, size) that give the derivative at every sample of the
+    least-squares polynomial of ``degree`` through the samples ``idx`` (m, size)."""
+    tau = t[idx] - t[:, None]
+    span = np.abs(tau).max(axis=1, keepdims=True)
+    span = np.where(span > 0, span, 1.0)
+    v = (tau / span)[..., None] ** np.arange(degree + 1)  # (m, size, d+1)
+    gram = np.einsum("mja,mjb->mab", v, v)
+    gram += 1e-12 * np.trace(gram, axis1=1, axis2=2)[:, None, None] * np.eye(degree + 1)
+    return np.linalg.solve(gram, np.swapaxes(v, 1, 2))[:, 1, :] / span
+
+
+def unresolved_derivatives(
+    x, t, derivative, half_window, degree: int = 4, mask=None, scale=None, cutoff: float = 3.5
+) -> np.ndarray:  # fmt: skip
+    """Entries of ``derivative`` (the local polynomial derivative of ``x`` of ``degree``
+    over ``half_window`` samples on each side, :func:`local_polynomial_derivative`) that
+    the sampling does not resolve: where it differs from the derivative of a polynomial
+    two degrees higher over one more sample on each side by more than ``cutoff`` times
+    the noise of that difference.
+
+    Where the trajectory is resolved the two derivatives differ by their noise; along
+    an excursion only a few samples long (a relaxation jump, a sharp peak) both carry
+    a truncation error, and a regression explains such a systematic error with
+    spurious terms.  The difference at each sample is divided by the factor by which
+    it amplifies the noise of the states (the norm of the difference of the two
+    estimators' weights, so that a window widened by a gap of flagged samples is not
+    mistaken for an unresolved one), and compared with ``cutoff`` times the larger of
+    the state's noise ``scale`` (when given) and the robust scale of these normalised
+    differences over the usable entries (on nearly noise-free states the truncation
+    error itself sets the scale, and only the excursions where it is gross count).
+    Only ratios within a component enter, so the decision does not depend on the
+    units of the states or of time.
+
+    Returns a boolean array like ``x`` (m, n).
+    """
+    x, t = _check(x, t, 2)
+    one_d = x.ndim == 1
+    x2 = x[:, None] if one_d else x
+    m, n = x2.shape
+    d = as_float_array(derivative, "derivative", (1, 2))
+    if d.size != m * n:
+        raise ValueError(f"derivative must have the shape of x {x.shape}; got {d.shape}")
+    d = d.reshape(m, n)
+    degree = check_int(degree, "degree", 1)
+    cutoff = float(cutoff)
+    half = np.broadcast_to(np.atleast_1d(np.asarray(half_window)), (n,)).astype(int)
+    usable = _usable(mask, m, n)
+    noise = _noise_scale(scale, n)
+    out = np.zeros((m, n), dtype=bool)
+    for k in range(n):
+        size_a, size_b = 2 * half[k] + 1, 2 * half[k] + 3
+        if m < size_b or degree + 2 >= size_b:
+            continue
+        ok = usable[:, k] if usable[:, k].sum() >= size_b else np.ones(m, dtype=bool)
+        ok_a = usable[:, k] if usable[:, k].sum() >= size_a else np.ones(m, dtype=bool)
+        sk = None if noise is None else noise[[k]]
+        high = _local_fit(x2[:, [k]], t, ok[:, None], [half[k] + 1], degree + 2, sk)[:, 0]
+        idx_a, idx_b = _nearest_usable(ok_a, size_a), _nearest_usable(ok, size_b)
+        w_a, w_b = _window_weights(t, idx_a, degree), _window_weights(t, idx_b, degree + 2)
+        cross = np.sum(w_a * _aligned(idx_a, idx_b, w_b), axis=1)
+        factor = np.sqrt(np.maximum((w_a**2).sum(1) + (w_b**2).sum(1) - 2 * cross, 0.0))
+        z = (d[:, k] - high) / np.where(factor > 0, factor, np.inf)
+        level = float(robust_scale(z[usable[:, k]])) if usable[:, k].any() else 0.0
+        if noise is not None and np.isfinite(noise[k]):
+            level = max(level, float(noise[k]))
+        if level > 0:
+            out[:, k] = np.abs(z) > cutoff * level
+    return out[:, 0] if one_d else out
+
+
+def _aligned(idx_a, idx_b, w_b):
+    """``w_b`` (m, size_b) at the samples ``idx_a`` (m, size_a) of each row (0 where a
+    sample of ``idx_a`` is not in that row of ``idx_b``); the rows of both are sorted."""
+    offset = (np.arange(idx_a.shape[0]) * (max(idx_a.max(), idx_b.max()) + 1))[:, None]
+    flat_b = (idx_b + offset).ravel()
+    pos = np.minimum(np.searchsorted(flat_b, (idx_a + offset).ravel()), flat_b.size - 1)
+    hit = flat_b[pos] == (idx_a + offset).ravel()
+    return np.where(hit, w_b.ravel()[pos], 0.0).reshape(idx_a.shape)
 
 
 def _usable(mask, m: int, n: int) -> np.ndarray:

@@ -9,6 +9,7 @@ identified equations.
 
 from __future__ import annotations
 
+import dataclasses
 import itertools
 import warnings
 from collections.abc import Callable
@@ -29,6 +30,7 @@ from .differentiation import (
     finite_difference,
     local_polynomial_derivative,
     savgol_derivative,
+    unresolved_derivatives,
 )
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
@@ -44,8 +46,12 @@ from .solvers.chunked import is_dask
 
 __all__ = ["Diagnostics", "HuberSINDy", "IdentificationWarning"]
 
-#: More flagged samples than this fraction and the screen's verdict is doubtful.
+#: More flagged samples than this fraction and the screen's verdict is doubtful (and
+#: more samples with unresolved derivatives than this, the sampling is too coarse).
 MAX_FLAGGED_FRACTION = 0.3
+#: More samples left out in all (outliers and unresolved derivatives) than this
+#: fraction, and what is left may not represent the trajectory.
+MAX_LEFT_OUT = 0.5
 #: Fewer kept samples per library term than this and the selection is doubtful.
 MIN_SAMPLES_PER_TERM = 5.0
 #: Condition number of the selected terms (unit-norm columns) beyond which their
@@ -88,7 +94,10 @@ class Diagnostics:
     temporal_flagged_entries, temporal_flagged_samples : int
         Entries (state, sample) the temporal screen flagged, and samples with any.
     model_flagged_samples : int
-        Samples the model-based screen left out of the fit (``screened_``).
+        Samples the model-based screen left out of the fit as outliers.
+    unresolved_samples : int
+        Samples left out of the fit because their estimated derivatives are not
+        resolved by the sampling (``unresolved_``; 0 with measured derivatives).
     readmitted_samples : int
         Samples flagged in time whose residuals were fine in every equation (kept).
     screening_converged : bool
@@ -98,7 +107,10 @@ class Diagnostics:
         (that start had lost the samples that alone excite some library directions,
         e.g. a fast excursion).
     flagged_fraction : float
-        Fraction of the samples left out.
+        Fraction of the samples left out (outliers and unresolved derivatives).  A
+        warning says so when the outliers or the unresolved derivatives are more than
+        ``MAX_FLAGGED_FRACTION`` of the samples, or both together more than
+        ``MAX_LEFT_OUT``.
     delta_over_scale : ndarray (n,)
         ``delta_`` divided by the robust residual scale of the screen's pilot.
     certified : ndarray of bool (n,)
@@ -184,6 +196,7 @@ class Diagnostics:
     temporal_flagged_samples: int
     model_flagged_samples: int
     readmitted_samples: int
+    unresolved_samples: int
     screening_converged: bool
     screening_restarted: bool
     flagged_fraction: float
@@ -222,11 +235,32 @@ class Diagnostics:
                 "the model-based screen did not converge (its flags kept changing): the "
                 "samples left out may be wrong; inspect screened_ and screening_"
             )
-        if self.flagged_fraction > MAX_FLAGGED_FRACTION:
+        unresolved = self.unresolved_samples / max(self.n_samples, 1)
+        outliers = self.flagged_fraction - unresolved
+        if outliers > MAX_FLAGGED_FRACTION:
             out.append(
-                f"{100 * self.flagged_fraction:.0f} % of the samples were flagged as "
-                "outliers: either the data are mostly corrupted or the library cannot "
-                "describe them; check the library and the data (screened_)"
+                f"{100 * outliers:.0f} % of the samples were flagged as outliers: either "
+                "the data are mostly corrupted or the library cannot describe them; check "
+                "the library and the data (screened_)"
+            )
+        if unresolved > MAX_FLAGGED_FRACTION:
+            out.append(
+                f"at {100 * unresolved:.0f} % of the samples the estimated derivatives are "
+                "not resolved: they differ from those of a higher-order local fit by more "
+                "than the noise explains (a trajectory sampled too coarsely for its fastest "
+                "excursions, or errors in the states the temporal screen left unflagged); "
+                "they were left out (unresolved_); sample faster, measure x_dot, or check "
+                "the states"
+            )
+        if max(outliers, unresolved) <= MAX_FLAGGED_FRACTION and (
+            self.flagged_fraction > MAX_LEFT_OUT
+        ):
+            out.append(
+                f"{100 * self.flagged_fraction:.0f} % of the samples were left out of the "
+                f"fit ({100 * outliers:.0f} % flagged as outliers, {100 * unresolved:.0f} % "
+                "with unresolved derivatives): what is left may not excite every term; "
+                "check the data (screened_, unresolved_), and measure x_dot or sample "
+                "faster"
             )
         if self.aliased:
             out.append(
@@ -334,10 +368,11 @@ class Diagnostics:
             f"{self.samples_per_term:.1f} kept samples per term)",
             f"  temporal screen: {self.temporal_flagged_entries} entries in "
             f"{self.temporal_flagged_samples} samples",
-            f"  model screen: {self.model_flagged_samples} samples left out "
-            f"({100 * self.flagged_fraction:.1f} %), {self.readmitted_samples} readmitted, "
-            f"converged={self.screening_converged}"
+            f"  model screen: {self.model_flagged_samples} samples left out, "
+            f"{self.readmitted_samples} readmitted, converged={self.screening_converged}"
             + (", restarted" if self.screening_restarted else ""),
+            f"  unresolved derivatives: {self.unresolved_samples} samples left out",
+            f"  left out in all: {100 * self.flagged_fraction:.1f} %",
             f"  certified: {self.certified.tolist()}",
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
             f"  library noise along its weakest direction: {self.library_noise:.2g}",
@@ -503,7 +538,15 @@ class HuberSINDy(BaseEstimator):
         standardised library columns (``selection_.lam``); in user units that is one
         weight per coefficient, this array.
     screened_ : ndarray of bool, shape (n_samples,)
-        Samples flagged by the screen and left out of the fit (all False without it).
+        Samples flagged by the screen and left out of the fit (all False without it):
+        outliers, and the samples of ``unresolved_``.
+    unresolved_ : ndarray of bool, shape (n_samples,)
+        Samples whose estimated derivatives the sampling does not resolve (with
+        ``differentiation="robust"`` and the screen:
+        :func:`~robust_sindy.differentiation.unresolved_derivatives` of any state),
+        left out of the fit: along an excursion only a few samples long the
+        derivative's truncation error is systematic, and a regression would explain it
+        with spurious terms.  None for Dask input (not checked out of core).
     temporal_ : TemporalScreening or None
         The temporal screen's flags, repaired states and noise levels.
     derivative_windows_ : ndarray of int (n_states,)
@@ -512,7 +555,8 @@ class HuberSINDy(BaseEstimator):
         five-sample stencil, with ``derivative_window="fixed"``); 0 when ``x_dot`` was
         given or another ``differentiation`` was used.
     screening_ : Screening or None
-        The model-based screen's details (residual scales, rounds, convergence).
+        The model-based screen's details (residual scales, rounds, convergence); it
+        screens the samples outside ``unresolved_``, and its masks cover all samples.
     library_noise_ : tuple (ndarray (n_features,), float)
         The states' noise carried through the library: per column relative to its
         root mean square, and along the library's least-excited direction (see
@@ -901,6 +945,7 @@ class HuberSINDy(BaseEstimator):
         self.coef_ = np.ascontiguousarray(coef.T)
         self.support_ = self.coef_ != 0
         self.screened_ = bad  # lazy (Dask): samples left out of the out-of-core refit
+        self.unresolved_ = None  # not checked out of core
         self.outliers_ = abs(r) > self.delta_
         (n_flagged,) = da.compute(bad.sum())
         certified = np.array([True if r_ is None else bool(r_.converged) for r_ in results])
@@ -948,8 +993,9 @@ class HuberSINDy(BaseEstimator):
         # 2. Derivatives of the (repaired) states when not measured.
         measured = ds is not None
         self.derivative_windows_ = np.zeros(n, dtype=int)
+        self.unresolved_ = np.zeros(m, dtype=bool)
         if ds is None:
-            ds = self._derivatives(xs, ts, entry_flags, theta)
+            ds, self.unresolved_ = self._derivatives(xs, ts, entry_flags, theta)
         y = np.vstack(ds)
         if not np.all(np.isfinite(y)):
             raise ValueError("the derivatives contain NaN or inf")
@@ -963,18 +1009,25 @@ class HuberSINDy(BaseEstimator):
         noise_all = self._noise_columns(z)
         self.screening_ = None
         if self.screen:
-            self.screening_ = screen_rows(
-                th_s,
-                y_s,
-                start=~entry_flags.any(axis=1),
-                segments=_segments(xs),
+            # Estimated derivatives the sampling does not resolve carry a systematic
+            # error that the library would explain with spurious terms: left out, and
+            # the model screen works on the other samples.
+            keep = ~self.unresolved_
+            screen = screen_rows(
+                th_s[keep],
+                y_s[keep],
+                start=~entry_flags.any(axis=1)[keep],
+                segments=_segments_of(keep, xs),
                 method=huber_method,
                 # The state noise carried through the model excuses residuals only
                 # where it is all they contain: estimated derivatives add their own
                 # errors along fast excursions, where the carried noise is largest.
-                noise=noise_all if measured else None,
+                noise=[a[keep] for a in noise_all] if measured and noise_all else None,
             )
-            keep = ~self.screening_.outliers
+            outliers, start = np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
+            outliers[keep], start[keep] = screen.outliers, screen.start
+            self.screening_ = dataclasses.replace(screen, outliers=outliers, start=start)
+            keep = keep & ~outliers
         self.screened_ = ~keep
         th, yk = th_s[keep], y_s[keep]
         # Terms that are exact combinations of earlier ones on these samples (a state
@@ -1096,8 +1149,10 @@ class HuberSINDy(BaseEstimator):
         rounding of its differences, which standardisation would blow up to unit size.
         """
         out, windows = [], [np.zeros(xs[0].shape[1], dtype=int)]
+        unresolved = np.zeros(sum(a.shape[0] for a in xs), dtype=bool)
         for seg, a, ti in zip(_segments(xs), xs, ts, strict=True):
             states = a if self.temporal_ is None else self.temporal_.repaired[seg]
+            loose = np.zeros(a.shape, dtype=bool)
             if _is_robust(self.differentiation):
                 if self.temporal_ is None:  # screen=False: the derivatives' own screen
                     own = temporal_screen(a, ti)
@@ -1107,14 +1162,17 @@ class HuberSINDy(BaseEstimator):
                     noise = self.temporal_.scale
                 d, half = self._robust_derivative(repaired, ti, usable, noise, theta[seg])
                 windows.append(half)
+                if self.screen:
+                    loose = unresolved_derivatives(repaired, ti, d, half, mask=usable, scale=noise)
             else:
                 d = self._differentiate(states, ti)
             still = np.ptp(states, axis=0) <= ALIAS_RTOL * np.max(np.abs(states), axis=0)
             d = np.array(d, dtype=float)
             d[:, still] = 0.0
             out.append(d)
+            unresolved[seg] = loose[:, ~still].any(axis=1)
         self.derivative_windows_ = np.max(windows, axis=0)
-        return out
+        return out, unresolved
 
     def _check_params(self):
         """Every parameter checked before any work (scikit-learn style: in ``fit``)."""
@@ -1354,8 +1412,9 @@ class HuberSINDy(BaseEstimator):
             samples_per_term=float((~self.screened_).sum() / p),
             temporal_flagged_entries=int(entry_flags.sum()),
             temporal_flagged_samples=int(entry_flags.any(axis=1).sum()),
-            model_flagged_samples=int(self.screened_.sum()),
+            model_flagged_samples=int((self.screened_ & ~self.unresolved_).sum()),
             readmitted_samples=int((entry_flags.any(axis=1) & ~self.screened_).sum()),
+            unresolved_samples=int(self.unresolved_.sum()),
             screening_converged=True if s is None else bool(s.converged),
             screening_restarted=False if s is None else bool(s.restarted),
             flagged_fraction=float(self.screened_.mean()),

@@ -248,3 +248,119 @@ def test_unique_rows_groups_rows_as_numpy_unique_does():
     first, inverse = _unique_rows(key)
     assert np.array_equal(key[first][inverse], key)
     assert first.size == np.unique(key, axis=0).shape[0]
+
+
+def _pulses(seed=0, m=1500):
+    """Smooth states with two pulses only a few samples wide (sharp, but smooth at the
+    sampling resolution), a spike and a burst of noise."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 15.0, m)
+    dt = t[1] - t[0]
+    pulses = 3 * np.exp(-0.5 * ((t - 5) / (1.5 * dt)) ** 2)
+    pulses += 2 * np.exp(-0.5 * ((t - 11) / (2 * dt)) ** 2)
+    clean = np.column_stack([np.sin(t) + pulses, np.cos(1.3 * t)])
+    x = clean + 1e-3 * rng.normal(size=clean.shape)
+    x[300, 0] += 0.5
+    x[900:920] += 0.3 * rng.normal(size=(20, 2))
+    near = (np.abs(t - 5) < 10 * dt) | (np.abs(t - 11) < 10 * dt)
+    return t, clean, x, near
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_temporal_screen_leaves_an_unresolved_excursion_alone(seed):
+    # The local fits cannot follow a pulse a few samples wide; the screen must not
+    # "repair" it with their predictions, yet still flag the spike and the burst.
+    t, clean, x, near = _pulses(seed)
+    s = temporal_screen(x, t)
+    assert not s.flags[near].any()
+    assert s.flags[300, 0]
+    gross = np.abs(x - clean) > 10e-3 * clean.std(axis=0)
+    assert s.flags[900:920][gross[900:920]].mean() >= 0.5
+    assert s.flags[~near].sum() <= 60  # the spike, the burst, its edges
+
+
+def test_unresolved_derivatives_mark_the_excursions_only_and_are_unit_free():
+    from robust_sindy.differentiation import unresolved_derivatives
+
+    t, _, x, near = _pulses(2)
+    s = temporal_screen(x, t)
+    d = local_polynomial_derivative(s.repaired, t, 2, mask=~s.flags, scale=s.scale)
+    u = unresolved_derivatives(s.repaired, t, d, 2, mask=~s.flags, scale=s.scale)
+    assert u[near, 0].sum() >= 10
+    burst = np.zeros(t.size, dtype=bool)
+    burst[890:930] = True
+    assert u[~near & ~burst].sum() <= 5
+    # Resolved states with a fifth of the entries masked: the windows widened by the
+    # gaps are not mistaken for unresolved ones.
+    rng = np.random.default_rng(3)
+    y = np.column_stack([np.sin(t), np.cos(1.3 * t)]) + 1e-3 * rng.normal(size=(t.size, 2))
+    mask = rng.random(y.shape) > 0.2
+    dy = local_polynomial_derivative(y, t, 2, mask=mask, scale=[1e-3, 1e-3])
+    uy = unresolved_derivatives(y, t, dy, 2, mask=mask, scale=[1e-3, 1e-3])
+    assert uy.mean() <= 0.005
+    c, tau = np.array([1e3, 1e-2]), 1e-2
+    scaled = unresolved_derivatives(
+        y * c, t * tau, dy * c / tau, 2, mask=mask, scale=1e-3 * c
+    )  # fmt: skip
+    assert np.array_equal(scaled, uy)
+    with pytest.raises(ValueError, match="derivative"):
+        unresolved_derivatives(y, t, dy[:-1], 2)
+
+
+def _van_der_pol(mu, seed, m=2000, dt=0.05):
+    import scipy.integrate
+
+    rng = np.random.default_rng(seed)
+
+    def rhs(_, v):
+        return [v[1], mu * v[1] - mu * v[0] ** 2 * v[1] - v[0]]
+
+    t = 100.0 + dt * np.arange(m)
+    ic = np.array([2.0, 0.0]) * (1 + 0.05 * rng.normal(size=2))
+    sol = scipy.integrate.solve_ivp(rhs, (0, t[-1]), ic, t_eval=t, rtol=1e-10, atol=1e-12)
+    x = sol.y.T
+    return t - t[0], x + 1e-3 * x.std(axis=0) * rng.normal(size=x.shape)
+
+
+@pytest.mark.parametrize("seed", [101, 102])
+def test_relaxation_jumps_states_only_are_left_out_not_explained(seed):
+    # Van der Pol with mu = 5: each relaxation jump takes a few samples, where the
+    # estimated derivative's truncation error is systematic.  Fitted, it selects spurious
+    # cubic terms at robust t well above the bar; left out, the model is exact.
+    t, x = _van_der_pol(5.0, seed)
+    model = HuberSINDy(library=PolynomialLibrary(degree=3))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model.fit(x, t)
+    names = model.get_feature_names()
+    true = np.zeros((2, len(names)), dtype=bool)
+    true[0, names.index("x1")] = True
+    true[1, [names.index(v) for v in ("x0", "x1", "x0^2*x1")]] = True
+    assert np.array_equal(model.support_, true), model.equations()
+    d = model.diagnostics_
+    assert d.unresolved_samples == model.unresolved_.sum() > 0
+    assert d.temporal_flagged_entries <= 0.02 * x.size
+    assert model.screened_[model.unresolved_].all()
+    assert "unresolved derivatives" in repr(d)
+    assert not any("sampling does not resolve" in str(w.message) for w in caught)
+
+
+def test_samples_left_out_are_reported_by_cause():
+    import dataclasses
+
+    data = Lorenz().generate(t_end=5.0)
+    d = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
+    m = d.n_samples
+
+    def problems(left_out, unresolved):
+        return dataclasses.replace(
+            d, flagged_fraction=left_out, unresolved_samples=round(unresolved * m)
+        ).problems()
+
+    assert problems(0.2, 0.1) == [] and problems(0.45, 0.2) == []
+    (message,) = problems(0.4, 0.05)
+    assert message.startswith("35 % of the samples were flagged as outliers")
+    (message,) = problems(0.45, 0.4)
+    assert message.startswith("at 40 % of the samples the estimated derivatives")
+    (message,) = problems(0.55, 0.27)
+    assert message.startswith("55 % of the samples were left out of the fit (28 % flagged")

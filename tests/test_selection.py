@@ -394,8 +394,10 @@ def test_a_close_runner_up_support_is_reported():
 def test_a_fast_excursion_the_temporal_screen_cannot_follow_is_kept():
     # AtmosphericRegime from seed 3, clean states (noise 2e-3 of the spread), exact
     # derivatives: its fastest state changes sign about every 5 samples, the temporal
-    # screen flags about half the samples, and on the other half the library is nearly
-    # degenerate.  The model screen restarts from every sample and keeps them.
+    # screen flags about 40 % of the samples (not smooth at the sampling resolution, so
+    # not withdrawn), and on the rest the library is nearly degenerate.  The model
+    # screen keeps them (by restarting from every sample where its first iteration
+    # loses them).
     import dataclasses
 
     from robust_sindy import zoo
@@ -410,5 +412,5 @@ def test_a_fast_excursion_the_temporal_screen_cannot_follow_is_kept():
         model.fit(noisy, t, x_dot=x_dot)
     d = model.diagnostics_
     assert d.temporal_flagged_samples > 0.3 * d.n_samples
-    assert d.screening_restarted and d.flagged_fraction <= 0.03
+    assert d.flagged_fraction <= 0.03
     assert np.array_equal(model.support_, system.coef.T != 0)

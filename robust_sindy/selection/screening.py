@@ -9,6 +9,9 @@
   (so that a fast excursion, where every prediction is less accurate, is not mistaken
   for an outlier).  It needs no model, sees errors in one component at a time, and gives
   a repaired trajectory (flagged entries replaced by their prediction) to differentiate.
+  Where the local fits cannot follow smooth samples at all (an excursion only a few
+  samples long) it flags nothing: it cannot tell an outlier there from the data's own
+  structure.
 * :func:`screen_rows` -- flags whole samples by their residual under an unpenalised
   Huber pilot, fitted on a clean start (the temporally unflagged samples), with
   per-equation scales estimated from the inliers.  It flags by residual only, never by
@@ -371,6 +374,34 @@ def _concentrate(xw, coef, v):
     return coef[np.arange(xw.shape[0]), np.argmin(obj, axis=1)]
 
 
+#: Rounds of withdrawing the flags in unresolved windows (each re-measures the errors).
+_UNRESOLVED_ROUNDS = 10
+
+
+def _unresolved(x, err, flags, h, cutoff, floor):
+    """Entries in windows the local fits do not resolve, per component: within ``h``
+    samples, at least two unflagged entries whose errors are gross against the
+    component's scale (the local fits cannot follow the samples there), and the
+    samples of the window are smooth at the sampling resolution: the root mean square
+    of their second differences is below that of their first differences (white noise
+    gives ``sqrt 3`` times more, so a burst of noise, a cluster of outliers or a
+    spike is not smooth; a sampled oscillation is while it has more than six samples
+    per period).  Such a window (a fast excursion sampled by a few samples) is
+    explained by neither an outlier nor the noise: the temporal screen cannot tell an
+    outlier there from the data's own structure, and leaves it to the model-based
+    screen."""
+    scale = [robust_scale(err[~flags[:, k], k]) for k in range(err.shape[1])]
+    gross = ~flags & (np.abs(err) > cutoff * np.maximum(scale, floor))
+    w = 2 * h + 1
+    count = scipy.ndimage.uniform_filter1d(gross.astype(float), w, axis=0, mode="constant") * w
+    first = np.diff(x, axis=0, prepend=x[:1])
+    second = np.diff(first, axis=0, append=first[-1:])
+    energy = [
+        scipy.ndimage.uniform_filter1d(a**2, w, axis=0, mode="nearest") for a in (first, second)
+    ]
+    return (count >= 1.5) & (energy[1] < energy[0])
+
+
 def _screen_one(x, t, h, degree, cutoff, scale_half):
     floor = _SCALE_FLOOR * np.maximum(x.std(axis=0), np.finfo(float).tiny)
 
@@ -407,6 +438,15 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
     # 3. Final confirmation against clean neighbours; flagged entries get the prediction.
     ratio, pred, err = ratio_of(flags)
     flags &= ratio > 1
+    # 4. Flags withdrawn (never added: this ends) in windows the local fits do not
+    #    resolve, the errors re-measured without them.
+    for _ in range(_UNRESOLVED_ROUNDS):
+        drop = flags & _unresolved(x, err, flags, h, cutoff, floor)
+        if not drop.any():
+            break
+        flags &= ~drop
+        ratio, pred, err = ratio_of(flags)
+        flags &= ratio > 1
     noise = np.array([robust_scale(err[~flags[:, k], k]) for k in range(x.shape[1])])
     return flags, np.where(flags, pred, x), noise
 
@@ -431,7 +471,7 @@ def temporal_screen(
     poor in the same way, is left to the model-based screen, while a burst of noise,
     whose errors jump from sample to sample, is not excused); the running median of
     the errors over 7 samples (a fit's smooth bias) is subtracted first.  Three fixed
-    passes, so the result never oscillates:
+    passes and a withdrawal, so the result never oscillates:
 
     1. candidates: errors from a least-trimmed-squares cubic in a window of 13
        samples, started from elemental fits and refined by concentration steps, so
@@ -445,7 +485,14 @@ def temporal_screen(
        takes its candidates from this prediction with all neighbours instead);
     3. refitted without those, the entries still gross are the flags, their
        predictions the repaired values, and the robust scale of the unflagged errors
-       the component's noise level (``scale``).
+       the component's noise level (``scale``);
+    4. in a window the local fits do not resolve -- at least two unflagged entries
+       within ``half_window`` samples with gross errors, on samples that are smooth at
+       the sampling resolution (second differences smaller than first ones, which
+       white noise, a burst or a spike do not give) -- the flags are withdrawn and the
+       errors re-measured, until none is: a fast excursion sampled by a few samples is
+       left to the model-based screen rather than "repaired" with a prediction that
+       cannot follow it.
 
     Parameters
     ----------
