@@ -18,7 +18,7 @@ import scipy.signal
 
 from ._certificates import column_norms
 from ._scaling import robust_scale
-from ._validation import as_float_array, check_int
+from ._validation import as_float_array, check_int, check_positive
 from .simulate import check_time
 
 __all__ = [
@@ -103,6 +103,16 @@ def _nearest_usable(usable: np.ndarray, size: int) -> np.ndarray:
     return np.sort(np.take_along_axis(idx, best, axis=1), axis=1)
 
 
+def _window_rows(t, idx, degree):
+    """The polynomial rows (m, size, degree + 1) of the windows ``idx`` (m, size), in
+    time relative to each sample and divided by the window's span (unit-free), and
+    the spans (m, 1)."""
+    tau = t[idx] - t[:, None]
+    span = np.abs(tau).max(axis=1, keepdims=True)
+    tau = tau / np.where(span > 0, span, 1.0)
+    return tau[..., None] ** np.arange(degree + 1), span
+
+
 #: Huber threshold (in noise scales) and reweighting steps of the robust local fits.
 HUBER_C, _HUBER_STEPS = 2.0, 4
 
@@ -118,10 +128,7 @@ def _local_fit(x2, t, usable, half_window, degree, scale=None):
         size = 2 * int(half_window[k]) + 1
         ok = usable[:, k] if usable[:, k].sum() >= size else np.ones(m, dtype=bool)
         idx = _nearest_usable(ok, size)
-        tau = t[idx] - t[:, None]
-        span = np.abs(tau).max(axis=1, keepdims=True)
-        tau = tau / np.where(span > 0, span, 1.0)
-        v = tau[..., None] ** np.arange(degree + 1)  # (m, size, d+1)
+        v, span = _window_rows(t, idx, degree)
         xw = x2[idx, k]
 
         def solve(w=None, v=v, xw=xw):
@@ -303,13 +310,10 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
 def _window_weights(t, idx, degree):
     """The weights (m, size) that give the derivative at every sample of the
     least-squares polynomial of ``degree`` through the samples ``idx`` (m, size)."""
-    tau = t[idx] - t[:, None]
-    span = np.abs(tau).max(axis=1, keepdims=True)
-    span = np.where(span > 0, span, 1.0)
-    v = (tau / span)[..., None] ** np.arange(degree + 1)  # (m, size, d+1)
+    v, span = _window_rows(t, idx, degree)
     gram = np.einsum("mja,mjb->mab", v, v)
     gram += 1e-12 * np.trace(gram, axis1=1, axis2=2)[:, None, None] * np.eye(degree + 1)
-    return np.linalg.solve(gram, np.swapaxes(v, 1, 2))[:, 1, :] / span
+    return np.linalg.solve(gram, np.swapaxes(v, 1, 2))[:, 1, :] / np.where(span > 0, span, 1.0)
 
 
 def unresolved_derivatives(
@@ -345,8 +349,8 @@ def unresolved_derivatives(
         raise ValueError(f"derivative must have the shape of x {x.shape}; got {d.shape}")
     d = d.reshape(m, n)
     degree = check_int(degree, "degree", 1)
-    cutoff = float(cutoff)
-    half = np.broadcast_to(np.atleast_1d(np.asarray(half_window)), (n,)).astype(int)
+    cutoff = check_positive(cutoff, "cutoff")
+    half = _half_windows(half_window, n)
     usable = _usable(mask, m, n)
     noise = _noise_scale(scale, n)
     out = np.zeros((m, n), dtype=bool)
@@ -379,6 +383,12 @@ def _aligned(idx_a, idx_b, w_b):
     pos = np.minimum(np.searchsorted(flat_b, (idx_a + offset).ravel()), flat_b.size - 1)
     hit = flat_b[pos] == (idx_a + offset).ravel()
     return np.where(hit, w_b.ravel()[pos], 0.0).reshape(idx_a.shape)
+
+
+def _half_windows(half_window, n: int) -> np.ndarray:
+    """``half_window`` (one int, or one per component) as an int array (n,), checked."""
+    half = np.broadcast_to(np.atleast_1d(np.asarray(half_window, dtype=object)), (n,))
+    return np.array([check_int(h, "half_window", 1) for h in half])
 
 
 def _usable(mask, m: int, n: int) -> np.ndarray:
@@ -423,8 +433,7 @@ def local_polynomial_derivative(x, t, half_window=2, degree: int = 4, mask=None,
             )
         half = choose_half_window(x, t, mask, degree, scale=scale)
     else:
-        half = np.broadcast_to(np.atleast_1d(np.asarray(half_window, dtype=object)), (n,))
-        half = np.array([check_int(h, "half_window", 1) for h in half])
+        half = _half_windows(half_window, n)
     w = 2 * int(half.max()) + 1
     if degree >= 2 * int(half.min()) + 1:
         raise ValueError(f"degree ({degree}) must be < 2 * half_window + 1 ({2 * half.min() + 1})")

@@ -305,6 +305,10 @@ def test_unresolved_derivatives_mark_the_excursions_only_and_are_unit_free():
     assert np.array_equal(scaled, uy)
     with pytest.raises(ValueError, match="derivative"):
         unresolved_derivatives(y, t, dy[:-1], 2)
+    with pytest.raises(ValueError, match="cutoff"):
+        unresolved_derivatives(y, t, dy, 2, cutoff=0.0)
+    with pytest.raises(ValueError, match="half_window"):
+        unresolved_derivatives(y, t, dy, 0)
 
 
 def _van_der_pol(mu, seed, m=2000, dt=0.05):

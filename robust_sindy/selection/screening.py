@@ -378,6 +378,11 @@ def _concentrate(xw, coef, v):
 _UNRESOLVED_ROUNDS = 10
 
 
+def _unflagged_scale(err, flags) -> np.ndarray:
+    """Per component, the robust scale of the errors ``err`` (m, n) left unflagged."""
+    return np.array([robust_scale(err[~flags[:, k], k]) for k in range(err.shape[1])])
+
+
 def _unresolved(x, err, flags, h, cutoff, floor):
     """Entries in windows the local fits do not resolve, per component: within ``h``
     samples, at least two unflagged entries whose errors are gross against the
@@ -390,8 +395,7 @@ def _unresolved(x, err, flags, h, cutoff, floor):
     explained by neither an outlier nor the noise: the temporal screen cannot tell an
     outlier there from the data's own structure, and leaves it to the model-based
     screen."""
-    scale = [robust_scale(err[~flags[:, k], k]) for k in range(err.shape[1])]
-    gross = ~flags & (np.abs(err) > cutoff * np.maximum(scale, floor))
+    gross = ~flags & (np.abs(err) > cutoff * np.maximum(_unflagged_scale(err, flags), floor))
     w = 2 * h + 1
     count = scipy.ndimage.uniform_filter1d(gross.astype(float), w, axis=0, mode="constant") * w
     first = np.diff(x, axis=0, prepend=x[:1])
@@ -447,8 +451,7 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
         flags &= ~drop
         ratio, pred, err = ratio_of(flags)
         flags &= ratio > 1
-    noise = np.array([robust_scale(err[~flags[:, k], k]) for k in range(x.shape[1])])
-    return flags, np.where(flags, pred, x), noise
+    return flags, np.where(flags, pred, x), _unflagged_scale(err, flags)
 
 
 def temporal_screen(
