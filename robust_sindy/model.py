@@ -10,6 +10,7 @@ identified equations.
 from __future__ import annotations
 
 import dataclasses
+import functools
 import itertools
 import warnings
 from collections.abc import Callable
@@ -546,7 +547,8 @@ class HuberSINDy(BaseEstimator):
         :func:`~robust_sindy.differentiation.unresolved_derivatives` of any state),
         left out of the fit: along an excursion only a few samples long the
         derivative's truncation error is systematic, and a regression would explain it
-        with spurious terms.  None for Dask input (not checked out of core).
+        with spurious terms.  For Dask input, found chunk by chunk (and kept in memory:
+        one byte per sample).
     temporal_ : TemporalScreening or None
         The temporal screen's flags, repaired states and noise levels.
     derivative_windows_ : ndarray of int (n_states,)
@@ -778,10 +780,13 @@ class HuberSINDy(BaseEstimator):
     def _fit_dask(self, x, t, x_dot, u, feature_names) -> HuberSINDy:
         """Dask arrays: choose on a sample in memory, then fit every sample out of core.
 
-        Without ``x_dot`` (``t`` must then be the time step) the states are
-        differentiated chunk by chunk by ``differentiation``, each chunk with
-        ``DASK_OVERLAP`` samples of its neighbours.  The whole pipeline (screens,
-        delta, lam, support) runs on the first ``DASK_SAMPLE`` samples; then each
+        The whole pipeline (screens, delta, lam, support) runs on the first
+        ``DASK_SAMPLE`` samples; without ``x_dot`` (``t`` must then be the time step) the
+        sample is fitted from its states, as in memory, and every chunk is
+        differentiated by ``differentiation`` with the sample's windows and noise
+        levels, each chunk with ``DASK_OVERLAP`` samples of its neighbours, its samples
+        whose derivatives the sampling does not resolve left out (``unresolved_``, found
+        in one pass).  Then each
         equation's selected terms are refitted by Huber (``lam = 0``, the chosen
         ``delta``) on all samples, chunk by chunk (:mod:`robust_sindy.solvers.chunked`),
         leaving out the samples whose residual under the sample's model exceeds ``3.5``
@@ -824,8 +829,8 @@ class HuberSINDy(BaseEstimator):
         step = t is not None and not isinstance(t, (list, tuple)) and np.ndim(t) == 0
         ts = [t] * len(xs) if step or t is None else per_trajectory(t, "t")
         ds = per_trajectory(x_dot, "x_dot")
-        half = None  # the robust derivatives' windows, when they are estimated here
-        if any(d is None for d in ds):
+        estimate = any(d is None for d in ds)
+        if estimate:
             if not step or is_dask(t):
                 raise ValueError(
                     "with a Dask x, derivatives are computed out of core for a uniform time "
@@ -834,44 +839,12 @@ class HuberSINDy(BaseEstimator):
             dt = float(t)
             if not (np.isfinite(dt) and dt > 0):
                 raise ValueError(f"t as a time step must be a finite number > 0; got {t!r}")
-
-            # The robust derivatives' windows and noise levels are measured once, on the
-            # first trajectory's part of the sample, and used for every chunk.
-            half = np.full(xs[0].shape[1], FIXED_HALF_WINDOW)
-            noise = None
-            if _is_robust(self.differentiation) and self.derivative_window == "auto":
-                k = min(DASK_SAMPLE, xs[0].shape[0])
-                head = np.asarray(xs[0][:k], dtype=float)
-                t_head = dt * np.arange(k)
-                screen = temporal_screen(head, t_head)
-                inputs = head if us[0] is None else np.hstack([head, np.asarray(us[0][:k])])
-                names = input_names(feature_names, head.shape[1], inputs.shape[1] - head.shape[1])
-                library = clone(self.library) if self.library is not None else PolynomialLibrary()
-                half = choose_half_window(
-                    screen.repaired, t_head, ~screen.flags,
-                    library=library.fit_transform(inputs, input_names=names),
-                    rows=~screen.flags.any(axis=1), scale=screen.scale,
-                )  # fmt: skip
-                noise = screen.scale
-
-            def derivative(block):
-                return self._differentiate(block, dt * np.arange(block.shape[0]), half,
-                                           scale=noise)  # fmt: skip
-
-            # Each chunk with DASK_OVERLAP samples of its neighbours on either side: the
-            # temporal screen's and the stencils' windows lie well within them.
-            xs = [a.rechunk({1: -1}) for a in xs]
-            ds = [
-                a.map_overlap(
-                    derivative, depth={0: DASK_OVERLAP, 1: 0}, boundary="none", dtype=float
-                )
-                for a in xs
-            ]
-        ds = [da.asarray(d) for d in ds]
-        ds = [d[:, None] if d.ndim == 1 else d for d in ds]
-        for d, a in zip(ds, xs, strict=True):
-            if d.shape != a.shape:
-                raise ValueError(f"x_dot has shape {d.shape} but x has shape {a.shape}")
+        else:
+            ds = [da.asarray(d) for d in ds]
+            ds = [d[:, None] if d.ndim == 1 else d for d in ds]
+            for d, a in zip(ds, xs, strict=True):
+                if d.shape != a.shape:
+                    raise ValueError(f"x_dot has shape {d.shape} but x has shape {a.shape}")
         # The sample: the first DASK_SAMPLE samples, whole trajectories first.
         left, sample = DASK_SAMPLE, []
         for a, d, b, ti in zip(xs, ds, us, ts, strict=True):
@@ -881,19 +854,62 @@ class HuberSINDy(BaseEstimator):
             left -= k
             if ti is not None and np.ndim(ti) > 0:
                 ti = np.asarray(ti[:k], dtype=float)
-            got = da.compute(a[:k], d[:k], *([] if b is None else [b[:k]]))
-            got = [np.asarray(v, dtype=float) for v in got]
-            sample.append((got[0], ti, got[1], got[2] if b is not None else None))
+            parts = [None if v is None else v[:k] for v in (a, d, b)]
+            got = iter(da.compute(*(v for v in parts if v is not None)))
+            sa, sd_, sb = (None if v is None else np.asarray(next(got), float) for v in parts)
+            sample.append((sa, ti, sd_, sb))
         sx, st, sd, su = (list(v) for v in zip(*sample, strict=True))
         one = len(sample) == 1
         t_sample = None if t is None else (st[0] if step or one else [np.asarray(v) for v in st])
-        self._fit(*self._trajectories(sx[0] if one else sx, t_sample, sd[0] if one else sd,
+        # Estimated derivatives: the sample is fitted from its states, as in memory (its
+        # own screens, derivatives and unresolved samples).
+        self._fit(*self._trajectories(sx[0] if one else sx, t_sample,
+                                      None if estimate else (sd[0] if one else sd),
                                       None if su[0] is None else (su[0] if one else su),
                                       need_t=False), feature_names)  # fmt: skip
         coef_sample = self.coef_.T.copy()
-        if half is not None and _is_robust(self.differentiation):
-            self.derivative_windows_ = half.copy()
-            self.diagnostics_.derivative_half_window = half.copy()
+        unresolved = [np.zeros(a.shape[0], dtype=bool) for a in xs]
+        if estimate:
+            # Every chunk is differentiated with DASK_OVERLAP samples of its neighbours
+            # on either side (the temporal screen's and the stencils' windows lie well
+            # within them), by the sample's windows and noise levels, and its unresolved
+            # samples are found as in memory.
+            half = self.derivative_windows_ if _is_robust(self.differentiation) else None
+            noise = None if self.temporal_ is None else self.temporal_.scale
+            n = xs[0].shape[1]
+
+            def derivative(block, check=False):
+                tb = dt * np.arange(block.shape[0])
+                screened, level = None, noise
+                if self.screen:
+                    own = temporal_screen(block, tb)
+                    screened = (own.repaired, ~own.flags)
+                    level = own.scale if noise is None else noise
+                d, _, loose = self._trajectory_derivative(
+                    block, tb, screened, level, half=half, check=check
+                )
+                return np.repeat(loose[:, None], n, axis=1) if check else d
+
+            xs = [a.rechunk({1: -1}) for a in xs]
+            ds = [
+                a.map_overlap(
+                    derivative, depth={0: DASK_OVERLAP, 1: 0}, boundary="none", dtype=float
+                )
+                for a in xs
+            ]
+            # The unresolved samples, found in one pass and kept (one byte per sample):
+            # every pass of the refit recomputes the derivatives, not this check.
+            *unresolved, sd = da.compute(
+                *(
+                    a.map_overlap(
+                        functools.partial(derivative, check=True),
+                        depth={0: DASK_OVERLAP, 1: 0}, boundary="none", dtype=bool,
+                    )[:, 0]
+                    for a in xs
+                ),
+                [d[: a.shape[0]] for d, a in zip(ds, sx, strict=False)],
+            )  # fmt: skip
+            sd = [np.asarray(v, dtype=float) for v in sd]
         # The sample's model and scales screen every sample, chunk by chunk.
         kept = ~self.screened_
         r_sample = (
@@ -905,7 +921,7 @@ class HuberSINDy(BaseEstimator):
         )
         scale = np.maximum(robust_scale(r_sample[kept]), np.finfo(float).tiny)
         thetas, rs_, bads = [], [], []
-        for a, d, b in zip(xs, ds, us, strict=True):
+        for a, d, b, loose in zip(xs, ds, us, unresolved, strict=True):
             _, theta_i = dask_library(self.library_, a, b, input_names=self.library_.input_names_)
             r_i = d - theta_i @ da.from_array(coef_sample)
             # As the model screen: the larger of the global scale and the residuals' local
@@ -917,8 +933,10 @@ class HuberSINDy(BaseEstimator):
             )  # fmt: skip
             thetas.append(theta_i)
             rs_.append(r_i)
-            bads.append((abs(r_i) > 3.5 * da.maximum(local, scale)).any(axis=1))
+            gross = (abs(r_i) > 3.5 * da.maximum(local, scale)).any(axis=1)
+            bads.append(gross | da.from_array(loose, chunks=gross.chunks))
         theta, r, bad = (da.concatenate(v, axis=0) for v in (thetas, rs_, bads))
+        unresolved = np.concatenate(unresolved)
         x_dot = da.concatenate(ds, axis=0)
         m = theta.shape[0]
         k = sum(a.shape[0] for a in sx)
@@ -945,7 +963,7 @@ class HuberSINDy(BaseEstimator):
         self.coef_ = np.ascontiguousarray(coef.T)
         self.support_ = self.coef_ != 0
         self.screened_ = bad  # lazy (Dask): samples left out of the out-of-core refit
-        self.unresolved_ = None  # not checked out of core
+        self.unresolved_ = unresolved  # in memory: one byte per sample, among screened_
         self.outliers_ = abs(r) > self.delta_
         (n_flagged,) = da.compute(bad.sum())
         certified = np.array([True if r_ is None else bool(r_.converged) for r_ in results])
@@ -954,6 +972,7 @@ class HuberSINDy(BaseEstimator):
             "sample": k,
             "samples": m,
             "flagged": int(n_flagged),
+            "unresolved": int(unresolved.sum()),
             "passes": [0 if r_ is None else r_.info["passes"] for r_ in results],
             "refit": results,
         }
@@ -1142,37 +1161,58 @@ class HuberSINDy(BaseEstimator):
     def _derivatives(self, xs, ts, entry_flags, theta):
         """Derivatives per trajectory: of the repaired states, outliers given no weight,
         over windows the library ``theta`` cannot tell from the narrowest one (on the
-        samples the temporal screen left alone).
-
-        A state that does not move within a trajectory (its range within ``ALIAS_RTOL``
-        of its magnitude: constant up to rounding) has derivative 0 there, not the
-        rounding of its differences, which standardisation would blow up to unit size.
-        """
+        samples the temporal screen left alone), and the samples whose derivatives the
+        sampling does not resolve (:meth:`_trajectory_derivative`)."""
         out, windows = [], [np.zeros(xs[0].shape[1], dtype=int)]
         unresolved = np.zeros(sum(a.shape[0] for a in xs), dtype=bool)
         for seg, a, ti in zip(_segments(xs), xs, ts, strict=True):
-            states = a if self.temporal_ is None else self.temporal_.repaired[seg]
-            loose = np.zeros(a.shape, dtype=bool)
-            if _is_robust(self.differentiation):
-                if self.temporal_ is None:  # screen=False: the derivatives' own screen
-                    own = temporal_screen(a, ti)
-                    repaired, usable, noise = own.repaired, ~own.flags, own.scale
-                else:
-                    repaired, usable = states, ~entry_flags[seg]
-                    noise = self.temporal_.scale
-                d, half = self._robust_derivative(repaired, ti, usable, noise, theta[seg])
+            screened, noise = None, None
+            if self.temporal_ is not None:
+                screened = (self.temporal_.repaired[seg], ~entry_flags[seg])
+                noise = self.temporal_.scale
+            d, half, unresolved[seg] = self._trajectory_derivative(
+                a, ti, screened, noise, library=theta[seg]
+            )
+            if half is not None:
                 windows.append(half)
-                if self.screen:
-                    loose = unresolved_derivatives(repaired, ti, d, half, mask=usable, scale=noise)
-            else:
-                d = self._differentiate(states, ti)
-            still = np.ptp(states, axis=0) <= ALIAS_RTOL * np.max(np.abs(states), axis=0)
-            d = np.array(d, dtype=float)
-            d[:, still] = 0.0
             out.append(d)
-            unresolved[seg] = loose[:, ~still].any(axis=1)
         self.derivative_windows_ = np.max(windows, axis=0)
         return out, unresolved
+
+    def _trajectory_derivative(
+        self, x, t, screened=None, noise=None, library=None, half=None, check=True
+    ):
+        """One trajectory's derivatives by ``differentiation``, the half windows of the
+        robust ones (None for the others) and the samples (m,) whose derivatives the
+        sampling does not resolve (:func:`unresolved_derivatives` of any moving state;
+        with robust differentiation and the screen only).
+
+        ``screened``: ``(repaired, usable)`` from the temporal screen of ``x``, whose
+        repaired states are differentiated (robust differentiation screens ``x`` itself
+        when None); ``noise``: the states' noise levels (by default that screen's);
+        ``library`` and ``half``: as in :meth:`_robust_derivative`; ``check=False``: the
+        unresolved samples are not looked for (all False).  A state that does
+        not move (its range within ``ALIAS_RTOL`` of its magnitude: constant up to
+        rounding) has derivative 0, not the rounding of its differences, which
+        standardisation would blow up to unit size.
+        """
+        states = x if screened is None else screened[0]
+        loose = np.zeros(x.shape, dtype=bool)
+        if _is_robust(self.differentiation):
+            if screened is None:  # screen=False: the derivatives' own screen
+                own = temporal_screen(x, t)
+                repaired, usable, noise = own.repaired, ~own.flags, own.scale
+            else:
+                repaired, usable = screened
+            d, half = self._robust_derivative(repaired, t, usable, noise, library, half)
+            if self.screen and check:
+                loose = unresolved_derivatives(repaired, t, d, half, mask=usable, scale=noise)
+        else:
+            d, half = self._differentiate(states, t), None
+        still = np.ptp(states, axis=0) <= ALIAS_RTOL * np.max(np.abs(states), axis=0)
+        d = np.array(d, dtype=float)
+        d[:, still] = 0.0
+        return d, half, loose[:, ~still].any(axis=1)
 
     def _check_params(self):
         """Every parameter checked before any work (scikit-learn style: in ``fit``)."""

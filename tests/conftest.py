@@ -41,3 +41,20 @@ def random_problem(seed: int, m=300, p=12, n=2, outliers=0.2, badly_scaled=False
 @pytest.fixture(scope="session")
 def lorenz2():
     return lorenz_library(seed=0, degree=2)
+
+
+def van_der_pol(mu, seed, m=2000, dt=0.05):
+    """Times and states of Van der Pol's oscillator after a burn-in of 100 time units,
+    noise 1e-3 of each state's spread."""
+    import scipy.integrate
+
+    rng = np.random.default_rng(seed)
+
+    def rhs(_, v):
+        return [v[1], mu * v[1] - mu * v[0] ** 2 * v[1] - v[0]]
+
+    t = 100.0 + dt * np.arange(m)
+    ic = np.array([2.0, 0.0]) * (1 + 0.05 * rng.normal(size=2))
+    sol = scipy.integrate.solve_ivp(rhs, (0, t[-1]), ic, t_eval=t, rtol=1e-10, atol=1e-12)
+    x = sol.y.T
+    return t - t[0], x + 1e-3 * x.std(axis=0) * rng.normal(size=x.shape)

@@ -12,6 +12,8 @@ from robust_sindy.selection import correlation_time
 from robust_sindy.selection.screening import temporal_screen
 from robust_sindy.systems import Lorenz
 
+from .conftest import van_der_pol
+
 
 def _smooth(m=1500, seed=0, noise=1e-3):
     rng = np.random.default_rng(seed)
@@ -311,27 +313,12 @@ def test_unresolved_derivatives_mark_the_excursions_only_and_are_unit_free():
         unresolved_derivatives(y, t, dy, 0)
 
 
-def _van_der_pol(mu, seed, m=2000, dt=0.05):
-    import scipy.integrate
-
-    rng = np.random.default_rng(seed)
-
-    def rhs(_, v):
-        return [v[1], mu * v[1] - mu * v[0] ** 2 * v[1] - v[0]]
-
-    t = 100.0 + dt * np.arange(m)
-    ic = np.array([2.0, 0.0]) * (1 + 0.05 * rng.normal(size=2))
-    sol = scipy.integrate.solve_ivp(rhs, (0, t[-1]), ic, t_eval=t, rtol=1e-10, atol=1e-12)
-    x = sol.y.T
-    return t - t[0], x + 1e-3 * x.std(axis=0) * rng.normal(size=x.shape)
-
-
 @pytest.mark.parametrize("seed", [101, 102])
 def test_relaxation_jumps_states_only_are_left_out_not_explained(seed):
     # Van der Pol with mu = 5: each relaxation jump takes a few samples, where the
     # estimated derivative's truncation error is systematic.  Fitted, it selects spurious
     # cubic terms at robust t well above the bar; left out, the model is exact.
-    t, x = _van_der_pol(5.0, seed)
+    t, x = van_der_pol(5.0, seed)
     model = HuberSINDy(library=PolynomialLibrary(degree=3))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
