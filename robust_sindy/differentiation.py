@@ -110,7 +110,13 @@ def _window_rows(t, idx, degree):
     tau = t[idx] - t[:, None]
     span = np.abs(tau).max(axis=1, keepdims=True)
     tau = tau / np.where(span > 0, span, 1.0)
-    return tau[..., None] ** np.arange(degree + 1), span
+    # The powers by repeated multiplication (``tau ** k`` calls pow for every entry,
+    # thirty times slower; the two differ by a rounding).
+    rows = np.empty((*tau.shape, degree + 1))
+    rows[..., 0] = 1.0
+    for k in range(1, degree + 1):
+        np.multiply(rows[..., k - 1], tau, out=rows[..., k])
+    return rows, span
 
 
 #: Huber threshold (in noise scales) and reweighting steps of the robust local fits.
@@ -133,10 +139,10 @@ def _local_fit(x2, t, usable, half_window, degree, scale=None):
 
         def solve(w=None, v=v, xw=xw):
             """The (weighted) least-squares coefficients of every window."""
-            vw = v if w is None else v * w[..., None]
-            gram = np.einsum("mja,mjb->mab", vw, v)
+            vw = np.swapaxes(v if w is None else v * w[..., None], 1, 2)
+            gram = vw @ v  # a stack of small products: matmul, several times einsum's speed
             ridge = 1e-12 * np.trace(gram, axis1=-2, axis2=-1)[..., None, None]
-            return np.linalg.solve(gram + ridge * eye, np.einsum("mja,mj->ma", vw, xw)[..., None])
+            return np.linalg.solve(gram + ridge * eye, vw @ xw[..., None])
 
         coef = solve()
         robust = scale is not None and size > degree + 1 and np.isfinite(scale[k])
@@ -311,7 +317,7 @@ def _window_weights(t, idx, degree):
     """The weights (m, size) that give the derivative at every sample of the
     least-squares polynomial of ``degree`` through the samples ``idx`` (m, size)."""
     v, span = _window_rows(t, idx, degree)
-    gram = np.einsum("mja,mjb->mab", v, v)
+    gram = np.swapaxes(v, 1, 2) @ v
     gram += 1e-12 * np.trace(gram, axis1=1, axis2=2)[:, None, None] * np.eye(degree + 1)
     return np.linalg.solve(gram, np.swapaxes(v, 1, 2))[:, 1, :] / np.where(span > 0, span, 1.0)
 

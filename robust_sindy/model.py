@@ -792,7 +792,11 @@ class HuberSINDy(BaseEstimator):
         leaving out the samples whose residual under the sample's model exceeds ``3.5``
         times the larger of the sample's robust scale and the local robust scale of the
         residuals within 25 samples, in any equation (the model screen's rule; here the
-        local scale counts every sample, not only those the temporal screen left alone).
+        local scale counts every sample, not only those the temporal screen left alone,
+        and is capped at its largest ratio to the global scale on the sample's kept
+        samples).  When more than ``MAX_FLAGGED_FRACTION`` of all samples are left out
+        as gross (or with unresolved derivatives), or more than ``MAX_LEFT_OUT`` in all,
+        a warning says the sample's model may not describe the rest of the data.
         A list of trajectories (``x``, and ``x_dot``, ``u`` and ``t`` when given, one
         each, or ``t`` one step for all) is sampled from its start, whole trajectories
         first; derivatives and local scales never reach across two trajectories.
@@ -920,20 +924,28 @@ class HuberSINDy(BaseEstimator):
             @ coef_sample
         )
         scale = np.maximum(robust_scale(r_sample[kept]), np.finfo(float).tiny)
+        # The local scale may exceed the global one only as far as it does on the
+        # sample's kept samples: where most residuals in a window are gross (a stretch
+        # of corrupted data after the sample), the local scale would excuse them all.
+        local_sample = np.vstack(
+            [local_scale(r_sample[seg], 25) for seg in _segments(sx)]
+        )  # fmt: skip
+        cap = np.max(local_sample[kept] / scale, axis=0, initial=1.0) * scale
         thetas, rs_, bads = [], [], []
         for a, d, b, loose in zip(xs, ds, us, unresolved, strict=True):
             _, theta_i = dask_library(self.library_, a, b, input_names=self.library_.input_names_)
             r_i = d - theta_i @ da.from_array(coef_sample)
             # As the model screen: the larger of the global scale and the residuals' local
             # robust scale within 25 samples (residuals that grow along a fast part of the
-            # trajectory are not outliers), each chunk with 25 samples of its neighbours.
+            # trajectory are not outliers), each chunk with 25 samples of its neighbours;
+            # the local scale at most ``cap``.
             local = da.map_overlap(
                 lambda v: local_scale(v, 25), r_i, depth={0: 25, 1: 0}, boundary="none",
                 dtype=float,
             )  # fmt: skip
             thetas.append(theta_i)
             rs_.append(r_i)
-            gross = (abs(r_i) > 3.5 * da.maximum(local, scale)).any(axis=1)
+            gross = (abs(r_i) > 3.5 * da.maximum(da.minimum(local, cap), scale)).any(axis=1)
             bads.append(gross | da.from_array(loose, chunks=gross.chunks))
         theta, r, bad = (da.concatenate(v, axis=0) for v in (thetas, rs_, bads))
         unresolved = np.concatenate(unresolved)
@@ -976,6 +988,25 @@ class HuberSINDy(BaseEstimator):
             "passes": [0 if r_ is None else r_.info["passes"] for r_ in results],
             "refit": results,
         }
+        # The sample's diagnostics speak for the sample: a model that fits the sample but
+        # not the rest of the data (a regime, a sensor or a contamination that changes
+        # after it) shows in what the out-of-core screen leaves out.
+        left_out = int(n_flagged) / max(m, 1)
+        unresolved_part = int(unresolved.sum()) / max(m, 1)
+        if max(left_out - unresolved_part, unresolved_part) > MAX_FLAGGED_FRACTION or (
+            left_out > MAX_LEFT_OUT
+        ):
+            warnings.warn(
+                f"out of core, {100 * left_out:.0f} % of all samples were left out of the "
+                f"refit ({100 * (left_out - unresolved_part):.0f} % with gross residuals "
+                f"under the sample's model, {100 * unresolved_part:.0f} % with unresolved "
+                f"derivatives), against {100 * self.diagnostics_.flagged_fraction:.0f} % "
+                f"of the first {k} samples, where the model was chosen: it may not describe "
+                "the rest of the data (see dask_ and screened_); fit a sample from another "
+                "part of the data, or more of it (robust_sindy.model.DASK_SAMPLE)",
+                IdentificationWarning,
+                stacklevel=3,
+            )
         if not certified.all():
             warnings.warn(
                 f"the out-of-core refit of equations {np.flatnonzero(~certified).tolist()} "

@@ -245,3 +245,39 @@ def test_dask_states_leave_out_the_derivatives_the_sampling_does_not_resolve(mon
     assert np.array_equal(whole.support_, true)
     # the same jumps, found chunk by chunk: nearly every sample left out in memory
     assert (unresolved & whole.unresolved_).sum() >= 0.9 * whole.unresolved_.sum()
+
+
+def test_dask_fit_warns_when_the_rest_of_the_data_is_not_like_the_sample(monkeypatch):
+    # The model is chosen on the first samples; when most of the rest is corrupted (a
+    # sensor that fails after them), the out-of-core screen leaves much of the data out,
+    # and the sample's clean diagnostics must not speak for it.
+    from robust_sindy import model as model_module
+
+    monkeypatch.setattr(model_module, "DASK_SAMPLE", 1500)
+    data = rs.systems.Lorenz().generate(t_end=29.99)  # 3000 samples
+    rng = np.random.default_rng(3)
+    x = data.x + 1e-3 * rng.normal(size=data.x.shape)
+
+    def fit(x_dot):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            model = rs.HuberSINDy().fit(
+                da.from_array(x, chunks=500), 0.01, x_dot=da.from_array(x_dot, chunks=500)
+            )
+        return model, [str(w.message) for w in caught if "out of core" in str(w.message)]
+
+    x_dot = data.x_dot.copy()
+    bad = np.zeros(len(x), dtype=bool)
+    bad[1500:] = rng.uniform(size=1500) < 0.7
+    x_dot[bad] += 50.0 * rng.normal(size=(bad.sum(), 3))
+    model, warned = fit(x_dot)
+    assert np.array_equal(model.support_, rs.systems.Lorenz().true_coef().T != 0)
+    assert model.diagnostics_.flagged_fraction < 0.05  # the sample is clean
+    assert model.dask_["flagged"] > 0.3 * len(x)
+    assert len(warned) == 1 and "may not describe the rest of the data" in warned[0]
+    # the same corruption spread evenly: the sample shows it, out of core adds nothing
+    x_dot = data.x_dot.copy()
+    bad = rng.uniform(size=len(x)) < 0.2
+    x_dot[bad] += 50.0 * rng.normal(size=(bad.sum(), 3))
+    model, warned = fit(x_dot)
+    assert model.dask_["flagged"] < 0.3 * len(x) and not warned
