@@ -72,7 +72,7 @@ def dask_library(library: BaseLibrary | None, x, u=None, input_names=None):
         u = u[:, None] if u.ndim == 1 else u
         if u.shape[0] != x.shape[0]:
             raise ValueError(f"u has {u.shape[0]} samples but x has {x.shape[0]}")
-        z = da.concatenate([x, u.rechunk({0: x.chunks[0], 1: -1})], axis=1)
+        z = da.concatenate([x, u.rechunk({0: x.chunks[0], 1: -1})], axis=1).rechunk({1: -1})
     lib = clone(library) if library is not None else PolynomialLibrary()
     lib.fit(np.zeros((1, z.shape[1])), input_names=input_names)
     p = lib.n_output_features_

@@ -281,3 +281,27 @@ def test_dask_fit_warns_when_the_rest_of_the_data_is_not_like_the_sample(monkeyp
     x_dot[bad] += 50.0 * rng.normal(size=(bad.sum(), 3))
     model, warned = fit(x_dot)
     assert model.dask_["flagged"] < 0.3 * len(x) and not warned
+
+
+def test_dask_library_and_fit_with_control_inputs(monkeypatch):
+    # States and inputs come in separate arrays, so their concatenation has two column
+    # blocks: the library must see one block of all inputs per row chunk.
+    from robust_sindy import model as model_module
+
+    monkeypatch.setattr(model_module, "DASK_SAMPLE", 1500)
+    drone = rs.systems.Drone()
+    data = drone.generate(t_end=30.0, dt=0.01)
+    x = data.x + 1e-3 * data.x.std(axis=0) * np.random.default_rng(4).normal(size=data.x.shape)
+    _, theta = rs.outofcore.dask_library(
+        drone.library(), da.from_array(x, chunks=700), da.from_array(data.u, chunks=500),
+        input_names=drone.input_names,
+    )  # fmt: skip
+    expected = drone.library().fit_transform(np.hstack([x, data.u]), input_names=drone.input_names)
+    np.testing.assert_allclose(theta.compute(), expected)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        model = rs.HuberSINDy(library=drone.library()).fit(
+            da.from_array(x, chunks=700), 0.01, u=da.from_array(data.u, chunks=700),
+            feature_names=drone.input_names,
+        )  # fmt: skip
+    np.testing.assert_array_equal(model.support_, drone.true_coef(full=True).T != 0)
