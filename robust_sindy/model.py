@@ -880,19 +880,12 @@ class HuberSINDy(BaseEstimator):
             # samples are found as in memory.
             half = self.derivative_windows_ if _is_robust(self.differentiation) else None
             noise = None if self.temporal_ is None else self.temporal_.scale
-            n = xs[0].shape[1]
 
-            def derivative(block, check=False):
-                tb = dt * np.arange(block.shape[0])
-                screened, level = None, noise
-                if self.screen:
-                    own = temporal_screen(block, tb)
-                    screened = (own.repaired, ~own.flags)
-                    level = own.scale if noise is None else noise
-                d, _, loose = self._trajectory_derivative(
-                    block, tb, screened, level, half=half, check=check
-                )
-                return np.repeat(loose[:, None], n, axis=1) if check else d
+            # A module-level function of an unfitted copy: the lazy results (screened_,
+            # outliers_) hold it, and a fitted model is pickled with them.
+            derivative = functools.partial(
+                _chunk_derivative, model=clone(self), dt=dt, half=half, noise=noise
+            )
 
             xs = [a.rechunk({1: -1}) for a in xs]
             ds = [
@@ -940,7 +933,8 @@ class HuberSINDy(BaseEstimator):
             # trajectory are not outliers), each chunk with 25 samples of its neighbours;
             # the local scale at most ``cap``.
             local = da.map_overlap(
-                lambda v: local_scale(v, 25), r_i, depth={0: 25, 1: 0}, boundary="none",
+                functools.partial(local_scale, half_width=25), r_i, depth={0: 25, 1: 0},
+                boundary="none",
                 dtype=float,
             )  # fmt: skip
             thetas.append(theta_i)
@@ -1777,6 +1771,21 @@ def _from_frames(x, t, x_dot, u):
         if all(ti is not None for ti in times):
             t = times if multiple else times[0]
     return values(x), t, values(x_dot), values(u), names
+
+
+def _chunk_derivative(block, model, dt, half, noise, check=False):
+    """Derivatives of one Dask chunk of states (``block``, with its overlap) as
+    ``model`` estimates them in memory (its own temporal screen, the sample's windows
+    ``half`` and noise levels ``noise``); with ``check``, instead, its samples whose
+    derivatives the sampling does not resolve, repeated across the columns."""
+    tb = dt * np.arange(block.shape[0])
+    screened, level = None, noise
+    if model.screen:
+        own = temporal_screen(block, tb)
+        screened = (own.repaired, ~own.flags)
+        level = own.scale if noise is None else noise
+    d, _, loose = model._trajectory_derivative(block, tb, screened, level, half=half, check=check)
+    return np.repeat(loose[:, None], block.shape[1], axis=1) if check else d
 
 
 def _matching(values, name: str, xs: list, multiple: bool) -> list | None:

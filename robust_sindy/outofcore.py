@@ -77,6 +77,8 @@ def dask_library(library: BaseLibrary | None, x, u=None, input_names=None):
     lib.fit(np.zeros((1, z.shape[1])), input_names=input_names)
     p = lib.n_output_features_
     theta = z.map_blocks(
-        lambda block: lib.transform(block), chunks=(z.chunks[0], (p,)), dtype=float
+        lib.transform,
+        chunks=(z.chunks[0], (p,)),
+        dtype=float,  # a bound method: picklable
     )
     return lib, theta

@@ -1,5 +1,6 @@
 """Fits on Dask arrays: the same certified optimum as in memory, from sums over chunks."""
 
+import pickle
 import warnings
 
 import numpy as np
@@ -239,6 +240,10 @@ def test_dask_states_leave_out_the_derivatives_the_sampling_does_not_resolve(mon
     unresolved, screened = model.unresolved_, model.screened_.compute()
     assert unresolved.shape == (3000,) and model.dask_["unresolved"] == unresolved.sum() > 0
     assert screened[unresolved].all()
+    # a fitted model pickles with its lazy results (their graph holds no local function)
+    again = pickle.loads(pickle.dumps(model))
+    np.testing.assert_array_equal(again.screened_.compute(), screened)
+    np.testing.assert_array_equal(again.coef_, model.coef_)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rs.IdentificationWarning)
         whole = rs.HuberSINDy(library=rs.PolynomialLibrary(3)).fit(x, dt)
