@@ -786,10 +786,11 @@ class HuberSINDy(BaseEstimator):
         differentiated by ``differentiation`` with the sample's windows and noise
         levels, each chunk with ``DASK_OVERLAP`` samples of its neighbours, its samples
         whose derivatives the sampling does not resolve left out (``unresolved_``, found
-        in one pass).  Then each
-        equation's selected terms are refitted by Huber (``lam = 0``, the chosen
-        ``delta``) on all samples, chunk by chunk (:mod:`robust_sindy.solvers.chunked`),
-        leaving out the samples whose residual under the sample's model exceeds ``3.5``
+        in one pass).  Then every equation's selected terms are refitted by Huber
+        (``lam = 0``, the chosen ``delta``) on all samples, chunk by chunk, in one
+        batched solve (:mod:`robust_sindy.solvers.chunked`; a term outside an
+        equation's support held at 0 by an L1 weight above ``delta ||A_j||_1``), leaving
+        out the samples whose residual under the sample's model exceeds ``3.5``
         times the larger of the sample's robust scale and the local robust scale of the
         residuals within 25 samples, in any equation (the model screen's rule; here the
         local scale counts every sample, not only those the temporal screen left alone,
@@ -949,38 +950,50 @@ class HuberSINDy(BaseEstimator):
         keep = ~bad
         theta_k = theta * keep[:, None]
         y_k = x_dot * keep[:, None]
+        # One pass for the count of samples left out and the columns' L1 norms (kept rows).
+        n_flagged, l1 = da.compute(bad.sum(), abs(theta_k).sum(axis=0))
         coef = np.zeros_like(coef_sample)
-        results = []
-        for j in range(coef.shape[1]):
-            support = np.flatnonzero(coef_sample[:, j])
-            if support.size == 0:
-                results.append(None)
-                continue
-            lam = 0.0  # lam="auto" and refit: the selected terms, unpenalised
+        cols = np.flatnonzero((coef_sample != 0).any(axis=0))
+        terms = np.flatnonzero((coef_sample != 0).any(axis=1))
+        result = None
+        certified = np.ones(coef.shape[1], dtype=bool)
+        if cols.size:
+            support = coef_sample[np.ix_(terms, cols)] != 0
+            lam = np.zeros(support.shape)  # lam="auto" and refit: the selected terms, unpenalised
             if self.selection_ is None and not self.refit:
-                lam_ = np.asarray(self.lam_)
-                lam = lam_[support, j] if lam_.ndim == 2 else float(np.ravel(lam_)[j])
-            res = fit(theta_k[:, support], y_k[:, j], delta=float(self.delta_[j]), lam=lam,
-                      **{key: v for key, v in (self.solver_options or {}).items()
-                         if key in ("tol", "max_iter")})  # fmt: skip
-            coef[support, j] = res.coef
-            results.append(res)
+                lam_ = np.asarray(self.lam_, dtype=float)
+                lam = np.broadcast_to(
+                    lam_[np.ix_(terms, cols)]
+                    if lam_.ndim == 2
+                    else np.broadcast_to(lam_, (coef.shape[1],))[cols][None, :],
+                    support.shape,
+                ).copy()  # fmt: skip
+            # Every equation's selected terms refitted in one batched solve (its passes
+            # over the data shared by all equations): a term outside an equation's
+            # support gets an L1 weight above delta ||A_j||_1, the most |A_j^T psi| can
+            # be with |psi| <= delta, which holds its coefficient at exactly 0.
+            delta = np.asarray(self.delta_, dtype=float)[cols]
+            bound = 2.0 * delta[None, :] * np.maximum(l1[terms], np.finfo(float).tiny)[:, None]
+            result = fit(theta_k[:, terms], y_k[:, cols], delta=delta,
+                         lam=np.where(support, lam, bound),
+                         **{key: v for key, v in (self.solver_options or {}).items()
+                            if key in ("tol", "max_iter")})  # fmt: skip
+            coef[np.ix_(terms, cols)] = np.where(support, np.asarray(result.coef), 0.0)
+            certified[cols] = result.column_converged
         self.coef_sample_ = coef_sample.T
         self.coef_ = np.ascontiguousarray(coef.T)
         self.support_ = self.coef_ != 0
         self.screened_ = bad  # lazy (Dask): samples left out of the out-of-core refit
         self.unresolved_ = unresolved  # in memory: one byte per sample, among screened_
         self.outliers_ = abs(r) > self.delta_
-        (n_flagged,) = da.compute(bad.sum())
-        certified = np.array([True if r_ is None else bool(r_.converged) for r_ in results])
         self.diagnostics_.certified = self.diagnostics_.certified & certified
         self.dask_ = {
             "sample": k,
             "samples": m,
             "flagged": int(n_flagged),
             "unresolved": int(unresolved.sum()),
-            "passes": [0 if r_ is None else r_.info["passes"] for r_ in results],
-            "refit": results,
+            "passes": 0 if result is None else result.info["passes"],
+            "refit": result,
         }
         # The sample's diagnostics speak for the sample: a model that fits the sample but
         # not the rest of the data (a regime, a sensor or a contamination that changes
