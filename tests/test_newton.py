@@ -7,6 +7,7 @@ import pytest
 import robust_sindy as rs
 from robust_sindy._losses import huber_psi
 from robust_sindy.selection import lambda_max
+from robust_sindy.solvers import _kernel
 from robust_sindy.solvers import newton as nw
 
 from .conftest import lorenz_library, random_problem
@@ -145,12 +146,20 @@ def test_paper_settings_are_the_plain_admm():
     assert res.info["newton_steps"].sum() == 0
 
 
-def test_passes_over_theta_are_counted():
+def test_passes_over_theta_are_counted(monkeypatch):
     theta, y = lorenz_library(0, 2)
     res = rs.fit(theta, y, delta=1.0, lam=1.0)
-    steps = res.info["newton_steps"].max()
-    # One residual, one gradient and one direction image per step, plus the start.
-    assert 3 <= res.info["passes"] <= 3 * steps + 6
+    steps = res.info["newton_steps"]
+    if nw.use_kernel(nw.prepare(theta).A, y.shape[1]):
+        # The compiled iteration works column by column: per step one pass for the
+        # residual and gradient and one for the direction's image, per column one more
+        # for the certificate and one for dropping rounding-level entries.
+        assert 3 <= res.info["passes"] <= np.sum(2 * steps + 2) + 2
+    monkeypatch.setattr(nw, "USE_KERNEL", False)
+    res = rs.fit(theta, y, delta=1.0, lam=1.0)
+    # One residual, one gradient and one direction image per step for all columns
+    # together, plus the start.
+    assert 3 <= res.info["passes"] <= 3 * res.info["newton_steps"].max() + 6
 
 
 def test_near_lad_points_are_certified_by_newton_without_the_admm():
@@ -234,3 +243,84 @@ def test_row_direction_is_the_gram_direction_where_both_resolve():
             d, cut = nw.row_direction(A, w, r, S, x, lam * sigma, delta, mu, None)
             assert not cut
             np.testing.assert_allclose(d, expect, rtol=1e-9, atol=1e-12 * np.abs(expect).max())
+
+
+def _kernel_cases():
+    """(theta, y, fit keyword arguments) for the compiled iteration's comparison."""
+    cases = {}
+    for seed, out in [(0, 0.1), (1, 0.3), (2, 0.0)]:
+        theta, y = random_problem(seed, n=3, outliers=out)
+        cases[f"random-{seed}"] = (theta, y, {"delta": 1.0, "lam": 0.05 * lambda_max(theta, y)})
+    theta, y = lorenz_library(0, 3)
+    cases["lorenz-3"] = (theta, y, {"delta": 1.0, "lam": 1.0})
+    theta, y = random_problem(4, n=2, badly_scaled=True)
+    weights = np.random.default_rng(4).uniform(0.0, 2.0, size=(theta.shape[1], 2))
+    weights[:3, 0] = 0.0  # unpenalised terms
+    cases["weighted-lam"] = (theta, y, {"delta": 0.5, "lam": weights * lambda_max(theta, y)[0]})
+    theta, y = random_problem(5, n=2)
+    cases["squared"] = (theta, y, {"loss": "squared", "lam": 0.1 * lambda_max(theta, y)})
+    cases["no-equilibration"] = (theta, y, {"delta": 1.0, "lam": 5.0, "equilibrate": False})
+    theta, y = _offset_cubic(0)  # singular inlier blocks: the NumPy steps finish
+    cases["ill-conditioned"] = (theta, y, {"delta": 1.5e-3, "lam": 0.0})
+    theta, y = random_problem(6, n=2, outliers=0.3)
+    cases["near-lad"] = (theta, y, {"delta": 1e-4, "lam": 0.2 * lambda_max(theta, y, 1e-4)})
+    return cases
+
+
+_KERNEL_CASES = _kernel_cases()
+
+
+@pytest.mark.skipif(not _kernel.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("name", sorted(_KERNEL_CASES))
+def test_compiled_and_numpy_iterations_reach_the_same_certified_optimum(name, monkeypatch):
+    theta, y, kwargs = _KERNEL_CASES[name]
+    statuses = []
+    original = _kernel.newton_kernel
+
+    def spy(*args, **kw):
+        out = original(*args, **kw)
+        statuses.append(out[1])
+        return out
+
+    monkeypatch.setattr(_kernel, "newton_kernel", spy)
+    compiled = rs.fit(theta, y, **kwargs)
+    assert statuses, "the compiled iteration did not run"
+    monkeypatch.setattr(nw, "USE_KERNEL", False)
+    plain = rs.fit(theta, y, **kwargs)
+    assert len(statuses) == 1  # not called with the switch off
+    for res in (compiled, plain):
+        assert res.converged and res.kkt.max() <= 1e-8
+    assert np.all(_rel(compiled.objective, plain.objective) <= 1e-10)
+    if name != "near-lad":
+        assert np.all(statuses[0] == 0)
+
+
+@pytest.mark.skipif(not _kernel.AVAILABLE, reason="numba is not installed")
+def test_columns_the_compiled_iteration_leaves_are_solved_by_the_numpy_steps(monkeypatch):
+    theta, y = lorenz_library(0, 3)
+    reference = rs.fit(theta, y, delta=1.0, lam=1.0)
+    monkeypatch.setattr(nw, "KERNEL_STEPS", 2)  # the kernel's budget: two steps
+    statuses = []
+    original = _kernel.newton_kernel
+
+    def spy(*args, **kw):
+        out = original(*args, **kw)
+        statuses.append(out[1])
+        return out
+
+    monkeypatch.setattr(_kernel, "newton_kernel", spy)
+    res = rs.fit(theta, y, delta=1.0, lam=1.0)
+    assert np.all(statuses[0] == 1)  # out of steps: every column handed over
+    assert res.converged and res.kkt.max() <= 1e-8 and not res.info["fallback"].any()
+    assert np.all(_rel(res.objective, reference.objective) <= 1e-10)
+    # The steps reported are the kernel's and then the NumPy iteration's.
+    assert np.all(res.info["newton_steps"] > 2)
+
+
+def test_the_compiled_iteration_takes_only_the_small_problems():
+    theta, _ = random_problem(0, m=300, p=12, n=3)
+    prepared = nw.prepare(theta)
+    assert nw.use_kernel(prepared.A, 3) == _kernel.AVAILABLE
+    big = nw.prepare(np.ones((100_000, 10)))
+    assert not nw.use_kernel(big.A, 3)  # the batched NumPy passes serve every column
+    assert not nw.use_kernel(nw.prepare(np.asfortranarray(theta)).A, 3)

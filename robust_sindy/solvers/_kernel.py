@@ -1,0 +1,475 @@
+"""Compiled inner loop of the Newton fast path (Numba), for the common, regular case.
+
+:func:`newton_kernel` runs the active-set Newton iteration of
+:mod:`robust_sindy.solvers.newton` one target column at a time, in compiled loops: one
+pass over the rows gives the residuals, ``psi``, the gradient, the objective and the
+KKT violation together, the inlier Gram matrix is updated by the rows that changed
+sides (its support block factorised by Cholesky), and the step is the full Newton
+step when it passes the Armijo test, else the minimiser along the direction (regula
+falsi on the monotone, piecewise-linear slope of the convex piecewise-quadratic
+objective), with the NumPy iteration's Levenberg-Marquardt rule and its
+proximal-gradient step where the direction is no descent direction.  The passes over
+the library are BLAS products.  At ``m = 1000`` a step costs tens of microseconds
+instead of the ~0.5 ms of NumPy calls.
+
+A column ends when its relative KKT violation (the formula of
+:func:`robust_sindy._certificates.kkt_from_gradient`) is below ``tol / 10``, after
+dropping rounding-level entries where the proximal-gradient map gives zeros if the
+violation stays below ``tol``.  Where the support's inlier Gram block is numerically
+singular (a Cholesky pivot below ``1e-11`` of the block's largest diagonal entry: fewer
+inliers than terms), the step is the reweighted least-squares one, as in the NumPy
+iteration.  It handles only what is regular: where that block is singular too (an
+ill-conditioned library), where no step makes progress, where the violation has not
+halved in 20 steps, or after its step budget, it stops and says so; the caller
+(:func:`robust_sindy.solvers.newton.solve_newton`) then solves that column with the
+NumPy iteration from the same start, which has eigenvalue cuts, steps from the rows
+and rounding-free residuals for those pieces.  Either way :func:`robust_sindy.fit`
+certifies the result in the user's units: the kernel is an accelerator, the
+certificate still decides.
+
+Numba is a dependency of the package, imported on the kernel's first use
+(:mod:`robust_sindy._compiled`); if it is not installed, :data:`AVAILABLE` is ``False``
+and the NumPy iteration does all the work.  The compiled code is cached on disk: the
+first call in a fresh installation compiles it once (about 10 s), later processes load
+it (a fraction of a second).
+"""
+
+from __future__ import annotations
+
+import numpy as np
+
+from .._compiled import AVAILABLE, Kernels
+from .newton import _ARMIJO, _DIRECT_GRAM, _DRIFT, _LM, _MAX_STEP, _UPDATE_ROWS
+
+__all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel"]
+
+#: Meaning of the kernel's status per column.
+KERNEL_STATUS = {
+    0: "certified (relative KKT below tol / 10 without the rounding-free residuals)",
+    1: "step budget exhausted, or the KKT violation did not halve in 20 steps",
+    2: "singular support block, inlier and reweighted",
+    3: "no descent direction (not even the proximal-gradient one)",
+    4: "no progress along the direction",
+}
+
+#: Cholesky pivots below this fraction of the support block's largest diagonal entry
+#: make the block singular (the NumPy iteration's eigenvalue cut is the same 1e-11).
+_PIVOT_CUT = 1e-11
+_SEARCHES = 60  # regula falsi iterations of the line search
+_STALL = 20  # steps without halving the KKT violation after which the kernel gives up
+_RELAX = 0.1  # the damping's decrease after a full step (as in the NumPy iteration)
+
+
+_jit = Kernels(globals())
+
+
+@_jit
+def _huber(r, delta):
+    a = abs(r)
+    if a <= delta:
+        return 0.5 * r * r
+    return delta * (a - 0.5 * delta)
+
+
+@_jit
+def _slope(t, r, q, x, d, lam, delta):
+    """Right derivative of ``P(x + t d)`` (see ``newton.slope``)."""
+    s = 0.0
+    for j in range(x.shape[0]):
+        xt = x[j] + t * d[j]
+        sg = np.sign(xt) if xt != 0.0 else np.sign(d[j])
+        s += lam[j] * sg * d[j]
+    for i in range(r.shape[0]):
+        v = r[i] - t * q[i]
+        if v > delta:
+            v = delta
+        elif v < -delta:
+            v = -delta
+        s -= v * q[i]
+    return s
+
+
+@_jit
+def _line_search(r, q, x, d, lam, delta, slope0):
+    """Minimiser of the convex piecewise-quadratic ``P(x + t d)``, ``t > 0``, from its
+    slope at 0 (``< 0``): a bracket by doubling from ``t = 1``, then the Illinois
+    variant of regula falsi on the slope, which is piecewise linear and nondecreasing
+    (exact once the bracket lies within one piece)."""
+    lo, s_lo = 0.0, slope0
+    hi = 1.0
+    s_hi = _slope(hi, r, q, x, d, lam, delta)
+    while s_hi < 0.0 and hi < _MAX_STEP:
+        lo, s_lo = hi, s_hi
+        hi *= 2.0
+        s_hi = _slope(hi, r, q, x, d, lam, delta)
+    if s_hi < 0.0:
+        return hi
+    side = 0
+    for _ in range(_SEARCHES):
+        if s_hi - s_lo > 0.0:
+            t = lo - s_lo * (hi - lo) / (s_hi - s_lo)
+        else:
+            t = 0.5 * (lo + hi)
+        if not (lo < t < hi):
+            t = 0.5 * (lo + hi)
+            if not (lo < t < hi):
+                break
+        st = _slope(t, r, q, x, d, lam, delta)
+        if st == 0.0:
+            return t
+        if st < 0.0:
+            lo, s_lo = t, st
+            if side == -1:
+                s_hi *= 0.5
+            side = -1
+        else:
+            hi, s_hi = t, st
+            if side == 1:
+                s_lo *= 0.5
+            side = 1
+        if hi - lo <= 1e-15 * hi:
+            break
+    return hi if s_hi == 0.0 else 0.5 * (lo + hi)
+
+
+@_jit
+def _row_gram(theta, scale, rows, weights):
+    """``sum_a weights[a] A_i^T A_i`` over the rows ``i = rows[a]`` of ``A = theta / scale``
+    (gathered, then one BLAS product)."""
+    p = theta.shape[1]
+    k = rows.shape[0]
+    B = np.empty((k, p))
+    W = np.empty((k, p))
+    for a in range(k):
+        i = rows[a]
+        for j in range(p):
+            v = theta[i, j] / scale[j]
+            B[a, j] = v
+            W[a, j] = weights[a] * v
+    if k == 0:
+        return np.zeros((p, p))
+    return np.dot(W.T, B)
+
+
+@_jit
+def _fresh_gram(theta, scale, G, inl, M):
+    """``M = A^T diag(inl) A``: from ``G`` minus the outliers while they are a minority
+    carrying at most half of every column's norm, else from the inliers directly."""
+    m, p = theta.shape
+    outliers = np.flatnonzero(~inl)
+    if 2 * outliers.shape[0] <= m:
+        M[:, :] = G - _row_gram(theta, scale, outliers, np.ones(outliers.shape[0]))
+        ok = True
+        for j in range(p):
+            if M[j, j] <= (1.0 - _DIRECT_GRAM) * G[j, j]:
+                ok = False
+        if ok:
+            return
+    inliers = np.flatnonzero(inl)
+    M[:, :] = _row_gram(theta, scale, inliers, np.ones(inliers.shape[0]))
+
+
+@_jit
+def _support_step(M, g, lam, sigma, sup, x, mu, d):
+    """The Newton direction ``d`` (p,) on the support ``sup`` from the Gram matrix ``M``:
+    ``(M_SS + mu I) d_S = g_S - lam_S sigma_S + M_SSbar x_Sbar``, ``d_Sbar = -x_Sbar``,
+    by Cholesky; returns whether the block is numerically singular (then ``d`` is not
+    set)."""
+    p = x.shape[0]
+    idx = np.flatnonzero(sup)
+    s_n = idx.shape[0]
+    B = np.empty((s_n, s_n))
+    b = np.empty(s_n)
+    top = 0.0
+    for a_ in range(s_n):
+        ja = idx[a_]
+        rhs = g[ja] - lam[ja] * sigma[ja]
+        for jb in range(p):
+            if not sup[jb]:
+                rhs += M[ja, jb] * x[jb]
+        b[a_] = rhs
+        for c_ in range(s_n):
+            B[a_, c_] = M[ja, idx[c_]]
+        top = max(top, B[a_, a_])
+        B[a_, a_] += mu
+    if s_n > 0 and not top > 0.0:
+        return True
+    for j in range(s_n):
+        v = B[j, j]
+        for k in range(j):
+            v -= B[j, k] * B[j, k]
+        if v <= _PIVOT_CUT * top:
+            return True
+        piv = np.sqrt(v)
+        B[j, j] = piv
+        for i in range(j + 1, s_n):
+            w = B[i, j]
+            for k in range(j):
+                w -= B[i, k] * B[j, k]
+            B[i, j] = w / piv
+    for i in range(s_n):
+        v = b[i]
+        for k in range(i):
+            v -= B[i, k] * b[k]
+        b[i] = v / B[i, i]
+    for i in range(s_n - 1, -1, -1):
+        v = b[i]
+        for k in range(i + 1, s_n):
+            v -= B[k, i] * b[k]
+        b[i] = v / B[i, i]
+    for j in range(p):
+        d[j] = -x[j]
+    for a_ in range(s_n):
+        d[idx[a_]] = b[a_]
+    return False
+
+
+@_jit
+def _evaluate(theta, scale, y, delta, lam, x, norms, r, psi, g, inl, xs, sup, sigma):
+    """One pass: residuals ``r``, the gradient ``g``, the inliers, the objective and the
+    relative KKT violation (as ``robust_sindy._certificates.kkt_from_gradient``), and the
+    proximal-gradient support ``sup`` with its signs ``sigma``."""
+    m, p = theta.shape
+    for j in range(p):
+        xs[j] = x[j] / scale[j]
+    r[:] = y - np.dot(theta, xs)  # one BLAS product per pass
+    obj = 0.0
+    psi2 = 0.0
+    for i in range(m):
+        ri = r[i]
+        if ri > delta:
+            ps = delta
+        elif ri < -delta:
+            ps = -delta
+        else:
+            ps = ri
+        inl[i] = abs(ri) <= delta
+        obj += _huber(ri, delta)
+        psi2 += ps * ps
+        psi[i] = ps
+    g[:] = np.dot(theta.T, psi)
+    for j in range(p):
+        g[j] /= scale[j]
+        obj += lam[j] * abs(x[j])
+    psi_norm = np.sqrt(psi2)
+    viol = 0.0
+    for j in range(p):
+        nrm = norms[j]
+        t_g = g[j] / nrm / nrm
+        t_l = lam[j] / nrm / nrm
+        u = x[j] + t_g
+        if u > t_l:
+            st = abs(g[j] - lam[j])
+        elif u < -t_l:
+            st = abs(g[j] + lam[j])
+        else:
+            st = abs(x[j]) * nrm * nrm
+        sc = max(lam[j], nrm * psi_norm)
+        if sc > 0:
+            rel = st / sc
+        elif st > 0:
+            rel = np.inf
+        else:
+            rel = 0.0
+        if not rel <= viol:  # NaN counts as a violation
+            viol = rel if rel == rel else np.inf
+        sup[j] = (abs(u) > t_l) or (lam[j] == 0.0)
+        sigma[j] = 0.0 if lam[j] == 0.0 else np.sign(u)
+    return obj, viol
+
+
+@_jit
+def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps):
+    """Newton iteration for one column, in place on ``x``; returns (status, steps, passes)."""
+    m, p = theta.shape
+    r = np.empty(m)
+    q = np.empty(m)
+    g = np.empty(p)
+    xs = np.empty(p)
+    psi = np.empty(m)
+    d = np.empty(p)
+    xd = np.empty(p)
+    inl = np.zeros(m, dtype=np.bool_)
+    old = np.zeros(m, dtype=np.bool_)
+    M = np.empty((p, p))
+    drift = np.zeros(p)
+    have_m = False
+    sup = np.zeros(p, dtype=np.bool_)
+    sigma = np.zeros(p)
+    passes = 0
+    status = 1
+    step = 0
+    mu = 0.0
+    weights = np.empty(m)
+    rows = np.arange(m)
+    tiny = np.finfo(np.float64).tiny
+    ref_viol, ref_step = np.inf, 0
+    for step in range(max_steps + 1):
+        obj, viol = _evaluate(theta, scale, y, delta, lam, x, norms, r, psi, g, inl, xs, sup, sigma)
+        passes += 1
+        if viol <= 0.1 * tol:
+            status = 0
+            # A partial step leaves rounding-level entries where the optimum has exact
+            # zeros: drop those the proximal-gradient map sets to zero if the
+            # certificate still holds.
+            drop = False
+            for j in range(p):
+                xd[j] = x[j]
+                if x[j] != 0.0 and not sup[j]:
+                    xd[j] = 0.0
+                    drop = True
+            if drop:
+                _, viol2 = _evaluate(
+                    theta, scale, y, delta, lam, xd, norms, r, psi, g, inl, xs, sup, sigma
+                )
+                passes += 1
+                if viol2 <= tol:
+                    x[:] = xd
+            break
+        if viol < 0.5 * ref_viol:
+            ref_viol, ref_step = viol, step
+        if step == max_steps or step - ref_step >= _STALL:
+            status = 1  # the budget, or no halving of the violation in _STALL steps
+            break
+        # Inlier Gram matrix: updated by the rows that changed sides, else afresh.
+        updated = False
+        if have_m:
+            n_changed = 0
+            for i in range(m):
+                if inl[i] != old[i]:
+                    n_changed += 1
+            if n_changed <= _UPDATE_ROWS * m:
+                changed = np.flatnonzero(inl != old)
+                sign = np.empty(changed.shape[0])
+                for a in range(changed.shape[0]):
+                    i = changed[a]
+                    sign[a] = 1.0 if inl[i] else -1.0
+                    for j in range(p):
+                        v = theta[i, j] / scale[j]
+                        drift[j] += v * v
+                M += _row_gram(theta, scale, changed, sign)
+                updated = True
+                for j in range(p):
+                    if drift[j] > _DRIFT * M[j, j]:
+                        updated = False
+        if not updated:
+            _fresh_gram(theta, scale, G, inl, M)
+            drift[:] = 0.0
+            have_m = True
+        old[:] = inl
+        if _support_step(M, g, lam, sigma, sup, x, mu, d):
+            # Too few inliers to fix the support's coefficients: the reweighted
+            # least-squares step, whose quadratic model majorises the Huber loss.
+            for i in range(m):
+                weights[i] = min(1.0, delta / max(abs(r[i]), tiny))
+            if _support_step(_row_gram(theta, scale, rows, weights), g, lam, sigma, sup, x, mu, d):
+                status = 2
+                break
+        # The direction's image, its slope at 0 and the full step's objective.
+        for j in range(p):
+            xs[j] = d[j] / scale[j]
+        q[:] = np.dot(theta, xs)
+        slope0 = 0.0
+        full = 0.0
+        for i in range(m):
+            s = q[i]
+            ri = r[i]
+            ps = delta if ri > delta else (-delta if ri < -delta else ri)
+            slope0 -= ps * s
+            full += _huber(ri - s, delta)
+        passes += 1
+        for j in range(p):
+            sg = np.sign(x[j]) if x[j] != 0.0 else np.sign(d[j])
+            slope0 += lam[j] * sg * d[j]
+            full += lam[j] * abs(x[j] + d[j])
+        if not slope0 < 0.0:
+            # No descent direction: the proximal-gradient step instead (one always is,
+            # unless x is optimal).
+            for j in range(p):
+                v = x[j] + g[j] / lipschitz
+                thr = lam[j] / lipschitz
+                d[j] = (max(abs(v) - thr, 0.0) * np.sign(v)) - x[j]
+                xs[j] = d[j] / scale[j]
+            q[:] = np.dot(theta, xs)
+            slope0 = 0.0
+            full = 0.0
+            for i in range(m):
+                s = q[i]
+                ri = r[i]
+                ps = delta if ri > delta else (-delta if ri < -delta else ri)
+                slope0 -= ps * s
+                full += _huber(ri - s, delta)
+            passes += 1
+            for j in range(p):
+                sg = np.sign(x[j]) if x[j] != 0.0 else np.sign(d[j])
+                slope0 += lam[j] * sg * d[j]
+                full += lam[j] * abs(x[j] + d[j])
+            if not slope0 < 0.0:
+                status = 3
+                break
+        if full <= obj + _ARMIJO * slope0:
+            t = 1.0
+        else:
+            t = _line_search(r, q, x, d, lam, delta, slope0)
+            if not t > 0.0:
+                status = 4
+                break
+        # Damping after a step the objective did not accept in full, relaxed after full
+        # steps (the rule of the NumPy iteration).
+        mu = _RELAX * mu if t == 1.0 else max(10.0 * mu, _LM * viol)
+        if mu < 1e-12:
+            mu = 0.0
+        for j in range(p):
+            x[j] += t * d[j]
+    return status, step, passes
+
+
+@_jit
+def _columns(theta, scale, G, yt, delta, lamt, xt, norms, lipschitz, tol, max_steps, status, steps):
+    """Every column in turn; ``yt`` (k, m), ``lamt`` and ``xt`` (k, p): one row each."""
+    passes = 0
+    for c in range(yt.shape[0]):
+        xc = xt[c].copy()
+        st, sp, ps = _column(
+            theta, scale, G, yt[c], delta[c], lamt[c], xc, norms, lipschitz, tol, max_steps
+        )
+        xt[c] = xc
+        status[c] = st
+        steps[c] = sp
+        passes += ps
+    return passes
+
+
+def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps):
+    """Run the compiled Newton iteration on every column of ``y`` (m, k) from ``x`` (p, k).
+
+    ``theta`` (m, p) C-contiguous and ``scale`` (p,) define ``A = theta / scale``;
+    ``G = A^T A``; ``lam`` (p, k), ``delta`` (k,) and ``x`` are in the units of ``A``;
+    ``norms`` are ``A``'s column norms and ``lipschitz`` the largest eigenvalue of ``G``
+    (the proximal-gradient step where the Newton direction is no descent direction).
+    Returns ``(x, status, steps, passes)`` with the status codes of
+    :data:`KERNEL_STATUS`; ``x`` is a new array.
+    """
+    _jit.compile()
+    k = y.shape[1]
+    status = np.zeros(k, dtype=np.int64)
+    steps = np.zeros(k, dtype=np.int64)
+    # Every array C-contiguous (the columns as rows), whatever the number of columns:
+    # every call uses the one compiled specialisation.
+    xt = np.ascontiguousarray(np.asarray(x, dtype=float).T)
+    passes = _columns(
+        np.asarray(theta, dtype=float),
+        np.ascontiguousarray(scale, dtype=float),
+        np.ascontiguousarray(G, dtype=float),
+        np.ascontiguousarray(np.asarray(y, dtype=float).T),
+        np.ascontiguousarray(delta, dtype=float),
+        np.ascontiguousarray(np.asarray(lam, dtype=float).T),
+        xt,
+        np.ascontiguousarray(norms, dtype=float),
+        float(lipschitz),
+        float(tol),
+        int(max_steps),
+        status,
+        steps,
+    )
+    return xt.T.copy(), status, steps, int(passes)
