@@ -11,6 +11,7 @@ in a fresh installation compiles (seconds), later processes load the cache.
 from __future__ import annotations
 
 import importlib.util
+import warnings
 
 __all__ = ["AVAILABLE", "Kernels"]
 
@@ -25,10 +26,16 @@ class Kernels:
         self._namespace = namespace
         self._names: list[str] = []
         self._ready = False
+        #: Why the kernels cannot be used (set on a failure to compile), else None.
+        self.broken: str | None = None if AVAILABLE else "numba is not installed"
 
     def __call__(self, f):
         self._names.append(f.__name__)
         return f
+
+    @property
+    def usable(self) -> bool:
+        return self.broken is None
 
     def compile(self) -> None:
         """Replace the marked functions by their compiled versions (once)."""
@@ -39,3 +46,31 @@ class Kernels:
         for name in self._names:
             self._namespace[name] = numba.njit(cache=True, nogil=True)(self._namespace[name])
         self._ready = True
+
+    def run(self, name: str, *args):
+        """Call the kernel ``name``; ``None`` if Numba cannot compile it here (a Numba
+        release that does not support this NumPy, say): then a warning says so once,
+        and the caller's NumPy code does the work from then on."""
+        if self.broken is not None:
+            return None
+        try:
+            self.compile()
+            return self._namespace[name](*args)
+        except ImportError as exc:
+            return self._disable(exc)
+        except Exception as exc:  # Numba's own errors only, told apart here
+            from numba.core.errors import NumbaError
+
+            if not isinstance(exc, NumbaError):
+                raise
+            return self._disable(exc)
+
+    def _disable(self, exc: Exception) -> None:
+        self.broken = f"{type(exc).__name__}: {str(exc).splitlines()[0][:200]}"
+        warnings.warn(
+            f"the compiled kernels could not be compiled ({self.broken}); the NumPy "
+            "code does the work (slower on small problems, same results). Installing "
+            "a Numba release that supports this NumPy restores them.",
+            RuntimeWarning,
+            stacklevel=4,
+        )

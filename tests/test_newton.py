@@ -324,3 +324,27 @@ def test_the_compiled_iteration_takes_only_the_small_problems():
     big = nw.prepare(np.ones((100_000, 10)))
     assert not nw.use_kernel(big.A, 3)  # the batched NumPy passes serve every column
     assert not nw.use_kernel(nw.prepare(np.asfortranarray(theta)).A, 3)
+
+
+@pytest.mark.skipif(not _kernel.AVAILABLE, reason="numba is not installed")
+def test_a_kernel_that_cannot_compile_warns_once_and_numpy_does_the_work(monkeypatch):
+    from numba.core.errors import TypingError
+
+    def broken():
+        raise TypingError("no implementation for this NumPy")
+
+    theta, y = random_problem(0, n=2)
+    reference = rs.fit(theta, y, delta=1.0, lam=5.0)
+    monkeypatch.setattr(_kernel._jit, "broken", None)  # restored afterwards
+    monkeypatch.setattr(_kernel._jit, "compile", broken)
+    with pytest.warns(RuntimeWarning, match="could not be compiled"):
+        first = rs.fit(theta, y, delta=1.0, lam=5.0)
+    assert not _kernel.usable()
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", RuntimeWarning)  # once only
+        again = rs.fit(theta, y, delta=1.0, lam=5.0)
+    for res in (first, again):
+        assert res.converged
+        assert np.all(_rel(res.objective, reference.objective) <= 1e-10)

@@ -41,7 +41,7 @@ import numpy as np
 from .._compiled import AVAILABLE, Kernels
 from .newton import _ARMIJO, _DIRECT_GRAM, _DRIFT, _LM, _MAX_STEP, _UPDATE_ROWS
 
-__all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel"]
+__all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel", "usable"]
 
 #: Meaning of the kernel's status per column.
 KERNEL_STATUS = {
@@ -61,6 +61,11 @@ _RELAX = 0.1  # the damping's decrease after a full step (as in the NumPy iterat
 
 
 _jit = Kernels(globals())
+
+
+def usable() -> bool:
+    """Whether the kernel can run (Numba installed, and no failure to compile it)."""
+    return _jit.usable
 
 
 @_jit
@@ -448,16 +453,17 @@ def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_
     ``norms`` are ``A``'s column norms and ``lipschitz`` the largest eigenvalue of ``G``
     (the proximal-gradient step where the Newton direction is no descent direction).
     Returns ``(x, status, steps, passes)`` with the status codes of
-    :data:`KERNEL_STATUS`; ``x`` is a new array.
+    :data:`KERNEL_STATUS` (``x`` a new array), or ``None`` where the kernel cannot be
+    compiled (:meth:`robust_sindy._compiled.Kernels.run`).
     """
-    _jit.compile()
     k = y.shape[1]
     status = np.zeros(k, dtype=np.int64)
     steps = np.zeros(k, dtype=np.int64)
     # Every array C-contiguous (the columns as rows), whatever the number of columns:
     # every call uses the one compiled specialisation.
     xt = np.ascontiguousarray(np.asarray(x, dtype=float).T)
-    passes = _columns(
+    passes = _jit.run(
+        "_columns",
         np.asarray(theta, dtype=float),
         np.ascontiguousarray(scale, dtype=float),
         np.ascontiguousarray(G, dtype=float),
@@ -472,4 +478,6 @@ def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_
         status,
         steps,
     )
+    if passes is None:
+        return None
     return xt.T.copy(), status, steps, int(passes)

@@ -100,7 +100,7 @@ def use_kernel(A, columns: int) -> bool:
     m, p = A.shape
     return (
         USE_KERNEL
-        and _kernel.AVAILABLE
+        and _kernel.usable()
         and A.theta.flags.c_contiguous
         and m * p * columns <= KERNEL_WORK
     )
@@ -727,6 +727,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
         kernel_steps = np.zeros(todo.size, dtype=int)
         kkt_last = np.full(todo.size, np.nan)
         run_stalled = np.zeros(todo.size, dtype=bool)
+        ran = None
         if use_kernel(A, todo.size):
             from . import _kernel
 
@@ -734,7 +735,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
             # column it could not certify, from the same start (the point where the
             # kernel stopped, on a piece with a singular block, can be a poor one: on
             # the drone's path it cost the NumPy iteration hundreds of steps).
-            found, status, kernel_steps, kernel_passes = _kernel.newton_kernel(
+            ran = _kernel.newton_kernel(
                 A.theta,
                 A.scale,
                 prepared.G,
@@ -747,6 +748,8 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
                 tol,
                 max_steps=min(budget, KERNEL_STEPS),
             )
+        if ran is not None:
+            found, status, kernel_steps, kernel_passes = ran
             passes += kernel_passes
             certified = status == 0
             x[:, todo[certified]] = found[:, certified]
