@@ -270,10 +270,8 @@ def _kernel_cases():
 _KERNEL_CASES = _kernel_cases()
 
 
-@pytest.mark.skipif(not _kernel.AVAILABLE, reason="numba is not installed")
-@pytest.mark.parametrize("name", sorted(_KERNEL_CASES))
-def test_compiled_and_numpy_iterations_reach_the_same_certified_optimum(name, monkeypatch):
-    theta, y, kwargs = _KERNEL_CASES[name]
+def _record_kernel_statuses(monkeypatch) -> list:
+    """A list that gets the per-column status of every call of the compiled iteration."""
     statuses = []
     original = _kernel.newton_kernel
 
@@ -283,6 +281,14 @@ def test_compiled_and_numpy_iterations_reach_the_same_certified_optimum(name, mo
         return out
 
     monkeypatch.setattr(_kernel, "newton_kernel", spy)
+    return statuses
+
+
+@pytest.mark.skipif(not _kernel.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("name", sorted(_KERNEL_CASES))
+def test_compiled_and_numpy_iterations_reach_the_same_certified_optimum(name, monkeypatch):
+    theta, y, kwargs = _KERNEL_CASES[name]
+    statuses = _record_kernel_statuses(monkeypatch)
     compiled = rs.fit(theta, y, **kwargs)
     assert statuses, "the compiled iteration did not run"
     monkeypatch.setattr(nw, "USE_KERNEL", False)
@@ -300,15 +306,7 @@ def test_columns_the_compiled_iteration_leaves_are_solved_by_the_numpy_steps(mon
     theta, y = lorenz_library(0, 3)
     reference = rs.fit(theta, y, delta=1.0, lam=1.0)
     monkeypatch.setattr(nw, "KERNEL_STEPS", 2)  # the kernel's budget: two steps
-    statuses = []
-    original = _kernel.newton_kernel
-
-    def spy(*args, **kw):
-        out = original(*args, **kw)
-        statuses.append(out[1])
-        return out
-
-    monkeypatch.setattr(_kernel, "newton_kernel", spy)
+    statuses = _record_kernel_statuses(monkeypatch)
     res = rs.fit(theta, y, delta=1.0, lam=1.0)
     assert np.all(statuses[0] == 1)  # out of steps: every column handed over
     assert res.converged and res.kkt.max() <= 1e-8 and not res.info["fallback"].any()

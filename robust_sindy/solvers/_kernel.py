@@ -284,6 +284,30 @@ def _evaluate(theta, scale, y, delta, lam, x, norms, r, psi, g, inl, xs, sup, si
 
 
 @_jit
+def _trial(theta, scale, r, x, d, lam, delta, xs, q):
+    """One pass along the direction ``d``: its image ``q = A d`` (into ``q``), the
+    objective's slope at ``x`` along ``d`` and the objective at the full step ``x + d``
+    (``r`` the residuals at ``x``, ``xs`` a work array)."""
+    m, p = theta.shape
+    for j in range(p):
+        xs[j] = d[j] / scale[j]
+    q[:] = np.dot(theta, xs)
+    slope0 = 0.0
+    full = 0.0
+    for i in range(m):
+        s = q[i]
+        ri = r[i]
+        ps = delta if ri > delta else (-delta if ri < -delta else ri)
+        slope0 -= ps * s
+        full += _huber(ri - s, delta)
+    for j in range(p):
+        sg = np.sign(x[j]) if x[j] != 0.0 else np.sign(d[j])
+        slope0 += lam[j] * sg * d[j]
+        full += lam[j] * abs(x[j] + d[j])
+    return slope0, full
+
+
+@_jit
 def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps):
     """Newton iteration for one column, in place on ``x``; returns (status, steps, passes)."""
     m, p = theta.shape
@@ -370,23 +394,8 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
             if _support_step(_row_gram(theta, scale, rows, weights), g, lam, sigma, sup, x, mu, d):
                 status = 2
                 break
-        # The direction's image, its slope at 0 and the full step's objective.
-        for j in range(p):
-            xs[j] = d[j] / scale[j]
-        q[:] = np.dot(theta, xs)
-        slope0 = 0.0
-        full = 0.0
-        for i in range(m):
-            s = q[i]
-            ri = r[i]
-            ps = delta if ri > delta else (-delta if ri < -delta else ri)
-            slope0 -= ps * s
-            full += _huber(ri - s, delta)
+        slope0, full = _trial(theta, scale, r, x, d, lam, delta, xs, q)
         passes += 1
-        for j in range(p):
-            sg = np.sign(x[j]) if x[j] != 0.0 else np.sign(d[j])
-            slope0 += lam[j] * sg * d[j]
-            full += lam[j] * abs(x[j] + d[j])
         if not slope0 < 0.0:
             # No descent direction: the proximal-gradient step instead (one always is,
             # unless x is optimal).
@@ -394,21 +403,8 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
                 v = x[j] + g[j] / lipschitz
                 thr = lam[j] / lipschitz
                 d[j] = (max(abs(v) - thr, 0.0) * np.sign(v)) - x[j]
-                xs[j] = d[j] / scale[j]
-            q[:] = np.dot(theta, xs)
-            slope0 = 0.0
-            full = 0.0
-            for i in range(m):
-                s = q[i]
-                ri = r[i]
-                ps = delta if ri > delta else (-delta if ri < -delta else ri)
-                slope0 -= ps * s
-                full += _huber(ri - s, delta)
+            slope0, full = _trial(theta, scale, r, x, d, lam, delta, xs, q)
             passes += 1
-            for j in range(p):
-                sg = np.sign(x[j]) if x[j] != 0.0 else np.sign(d[j])
-                slope0 += lam[j] * sg * d[j]
-                full += lam[j] * abs(x[j] + d[j])
             if not slope0 < 0.0:
                 status = 3
                 break

@@ -50,9 +50,9 @@ On small problems (``m p k`` up to :data:`KERNEL_WORK`, e.g. a thousand samples 
 library of 35 terms and three targets, and every fit along a path at that size) a
 step's NumPy calls cost more than its passes over ``Theta``: there a compiled version
 of the same iteration (:mod:`robust_sindy.solvers._kernel`, Numba, column by column)
-takes the steps first, 3-5 times faster, and the NumPy iteration goes on from its
-point for any column it could not certify (a singular support block, its step
-budget).  ``USE_KERNEL = False`` switches it off.
+takes the steps first, 3-5 times faster, and the NumPy iteration solves any column
+it could not certify (singular support blocks, no progress, its step budget) from the
+same start.  ``USE_KERNEL = False`` switches it off.
 """
 
 from __future__ import annotations
@@ -724,7 +724,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
         budget = FIRST_STEPS * opts["newton_steps"]
         y_todo = np.asfortranarray(ys[:, todo])
         certified = np.zeros(todo.size, dtype=bool)
-        kernel_steps = np.zeros(todo.size, dtype=int)
+        steps_todo = np.zeros(todo.size, dtype=int)
         kkt_last = np.full(todo.size, np.nan)
         run_stalled = np.zeros(todo.size, dtype=bool)
         ran = None
@@ -749,7 +749,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
                 max_steps=min(budget, KERNEL_STEPS),
             )
         if ran is not None:
-            found, status, kernel_steps, kernel_passes = ran
+            found, status, steps_todo, kernel_passes = ran
             passes += kernel_passes
             certified = status == 0
             x[:, todo[certified]] = found[:, certified]
@@ -765,10 +765,10 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
                 tol=tol,
             )
             x[:, todo[rest]] = run.x
-            certified[rest], kernel_steps[rest] = run.certified, kernel_steps[rest] + run.steps
+            certified[rest], steps_todo[rest] = run.certified, steps_todo[rest] + run.steps
             kkt_last[rest], run_stalled[rest] = run.kkt, run.stalled
             passes += run.passes
-        converged[todo], steps[todo], stalled[todo] = certified, kernel_steps, run_stalled
+        converged[todo], steps[todo], stalled[todo] = certified, steps_todo, run_stalled
         for i, k in enumerate(todo):
             if certified[i]:
                 messages[k] = f"certified by the active-set Newton method after {steps[k]} steps"
