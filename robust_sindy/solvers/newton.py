@@ -192,6 +192,11 @@ class Prepared:
 
 def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
     """Equilibrate ``theta`` and form its Gram matrix once (pass as ``prepared``)."""
+    if theta.size <= KERNEL_WORK and not theta.flags.c_contiguous:
+        # The compiled iteration reads the library by rows: a small one in another
+        # layout (a selection of columns, theta[:, keep], is column-major) is copied
+        # once, so that the refits of the selection stage run compiled too.
+        theta = np.ascontiguousarray(theta)
     norms = column_norms(theta)  # no overflow for entries near 1e200
     nz = norms > 0
     scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
