@@ -25,6 +25,7 @@ __all__ = [
     "HALF_WINDOWS",
     "choose_half_window",
     "finite_difference",
+    "higher_order_derivative",
     "local_polynomial_derivative",
     "savgol_derivative",
     "unresolved_derivatives",
@@ -322,8 +323,37 @@ def _window_weights(t, idx, degree):
     return np.linalg.solve(gram, np.swapaxes(v, 1, 2))[:, 1, :] / np.where(span > 0, span, 1.0)
 
 
+def higher_order_derivative(x, t, half_window, degree: int = 4, mask=None, scale=None):
+    """The reference of :func:`unresolved_derivatives`: per component, the derivative of
+    the polynomial two degrees higher than ``degree`` over one more sample on each side
+    than ``half_window`` (Huber fits with the noise ``scale``, as in
+    :func:`local_polynomial_derivative`).  Its truncation error is of two orders
+    higher in the sampling interval, so where the sampling resolves the trajectory
+    the difference from the lower-order derivative is that derivative's truncation
+    error plus noise.  NaN for a component too short for that window.  Returns an
+    array like ``x``."""
+    x, t = _check(x, t, 2)
+    one_d = x.ndim == 1
+    x2 = x[:, None] if one_d else x
+    m, n = x2.shape
+    degree = check_int(degree, "degree", 1)
+    half = _half_windows(half_window, n)
+    usable = _usable(mask, m, n)
+    noise = _noise_scale(scale, n)
+    out = np.full((m, n), np.nan)
+    for k in range(n):
+        size_b = 2 * half[k] + 3
+        if m < size_b or degree + 2 >= size_b:
+            continue
+        ok = usable[:, k] if usable[:, k].sum() >= size_b else np.ones(m, dtype=bool)
+        sk = None if noise is None else noise[[k]]
+        out[:, k] = _local_fit(x2[:, [k]], t, ok[:, None], [half[k] + 1], degree + 2, sk)[:, 0]
+    return out[:, 0] if one_d else out
+
+
 def unresolved_derivatives(
-    x, t, derivative, half_window, degree: int = 4, mask=None, scale=None, cutoff: float = 3.5
+    x, t, derivative, half_window, degree: int = 4, mask=None, scale=None, cutoff: float = 3.5,
+    high=None,
 ) -> np.ndarray:  # fmt: skip
     """Entries of ``derivative`` (the local polynomial derivative of ``x`` of ``degree``
     over ``half_window`` samples on each side, :func:`local_polynomial_derivative`) that
@@ -342,7 +372,8 @@ def unresolved_derivatives(
     differences over the usable entries (on nearly noise-free states the truncation
     error itself sets the scale, and only the excursions where it is gross count).
     Only ratios within a component enter, so the decision does not depend on the
-    units of the states or of time.
+    units of the states or of time.  ``high``: that higher-order derivative
+    (:func:`higher_order_derivative`), when already computed.
 
     Returns a boolean array like ``x`` (m, n).
     """
@@ -359,6 +390,9 @@ def unresolved_derivatives(
     half = _half_windows(half_window, n)
     usable = _usable(mask, m, n)
     noise = _noise_scale(scale, n)
+    if high is None:
+        high = higher_order_derivative(x2, t, half, degree, usable, noise)
+    high = np.asarray(high, dtype=float).reshape(m, n)  # NaN where a component is too short
     out = np.zeros((m, n), dtype=bool)
     for k in range(n):
         size_a, size_b = 2 * half[k] + 1, 2 * half[k] + 3
@@ -366,13 +400,11 @@ def unresolved_derivatives(
             continue
         ok = usable[:, k] if usable[:, k].sum() >= size_b else np.ones(m, dtype=bool)
         ok_a = usable[:, k] if usable[:, k].sum() >= size_a else np.ones(m, dtype=bool)
-        sk = None if noise is None else noise[[k]]
-        high = _local_fit(x2[:, [k]], t, ok[:, None], [half[k] + 1], degree + 2, sk)[:, 0]
         idx_a, idx_b = _nearest_usable(ok_a, size_a), _nearest_usable(ok, size_b)
         w_a, w_b = _window_weights(t, idx_a, degree), _window_weights(t, idx_b, degree + 2)
         cross = np.sum(w_a * _aligned(idx_a, idx_b, w_b), axis=1)
         factor = np.sqrt(np.maximum((w_a**2).sum(1) + (w_b**2).sum(1) - 2 * cross, 0.0))
-        z = (d[:, k] - high) / np.where(factor > 0, factor, np.inf)
+        z = (d[:, k] - high[:, k]) / np.where(factor > 0, factor, np.inf)
         level = float(robust_scale(z[usable[:, k]])) if usable[:, k].any() else 0.0
         if noise is not None and np.isfinite(noise[k]):
             level = max(level, float(noise[k]))

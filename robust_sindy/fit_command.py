@@ -363,6 +363,7 @@ def _summary(model, job, source: str, messages) -> list[str]:
     names = model.get_feature_names()
     for label, mask in (
         ("dropped as errors-in-variables bias", model.bias_dropped_),
+        ("dropped as derivative truncation bias", np.isfinite(model.truncation_ratio_)),
         ("left out below the noise floor", np.isfinite(model.below_floor_)),
         (f"dropped, robust t below {d.significance_level:g}", np.isfinite(model.pruned_)),
         (f"selected, robust t below {d.significance_level:g}", d.weak),

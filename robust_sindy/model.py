@@ -29,6 +29,7 @@ from ._validation import as_float_array, per_column
 from .differentiation import (
     choose_half_window,
     finite_difference,
+    higher_order_derivative,
     local_polynomial_derivative,
     savgol_derivative,
     unresolved_derivatives,
@@ -36,7 +37,7 @@ from .differentiation import (
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
 from .selection.aliasing import ALIAS_RTOL, aliased_columns
-from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram
+from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram, truncation_bias
 from .selection.criteria import MIN_BIC_MARGIN
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
@@ -138,6 +139,17 @@ class Diagnostics:
         dropped; NaN for every other term (all NaN without the temporal screen or with a
         fixed ``lam``).  A ratio of at least 1 is a term that the bias alone does not
         explain, dropped only for want of margin: it may be real, and a warning says so.
+    truncation_ratio : ndarray (n, p)
+        For terms dropped because their coefficient was within ``BIAS_MARGIN`` times the
+        bias that the truncation error of the estimated derivatives gives it (the
+        difference from derivatives of two orders higher, projected on the selected
+        terms, less two of its standard errors; see
+        :func:`robust_sindy.selection.bias.truncation_bias`): the coefficient over that
+        bias when dropped; NaN for every other term (all NaN with measured derivatives,
+        other than the robust differentiation, without the screen or with a fixed
+        ``lam``).  On a coarsely sampled trajectory the truncation error is systematic,
+        and a regression explains it with spurious terms.  A ratio of at least 1 may be
+        a real term dropped for want of margin, and a warning says so.
     below_floor : ndarray (n, p)
         Unselected terms whose relative contribution, were they added, lies between
         ``selection_tol`` and the noise floor ``selection_tol_`` that the library noise
@@ -209,6 +221,7 @@ class Diagnostics:
     bias_ratio: np.ndarray
     below_floor: np.ndarray
     bic_margin: np.ndarray
+    truncation_ratio: np.ndarray
     subset_size: np.ndarray
     from_subsets: np.ndarray
     significance: np.ndarray
@@ -304,16 +317,31 @@ class Diagnostics:
                 "diagnostics_.unstable, and try more data, measured derivatives or a "
                 "smaller library"
             )
-        doubtful, counts = _equations_with(np.nan_to_num(self.bias_ratio) >= 1.0)
-        if doubtful.size:
-            out.append(
-                f"equations {doubtful.tolist()}: {counts} terms were dropped because they lie "
-                f"within {BIAS_MARGIN:g} times the bias that the noise of the states gives "
-                "them through the other terms (errors in the variables), yet exceed that "
-                "bias: they may be real, and these data cannot decide (see "
-                "diagnostics_.bias_ratio); less noisy states, a longer trajectory or a "
-                "smaller library would"
-            )
+        for ratio, source, name, advice in (
+            (
+                self.bias_ratio,
+                "the noise of the states gives them through the other terms (errors in "
+                "the variables)",
+                "bias_ratio",
+                "less noisy states, a longer trajectory or a smaller library",
+            ),
+            (
+                self.truncation_ratio,
+                "the truncation error of the estimated derivatives gives them (measured "
+                "against derivatives of higher order: the sampling does not fully resolve "
+                "the trajectory)",
+                "truncation_ratio",
+                "faster sampling or measured derivatives",
+            ),
+        ):
+            doubtful, counts = _equations_with(np.nan_to_num(ratio) >= 1.0)
+            if doubtful.size:
+                out.append(
+                    f"equations {doubtful.tolist()}: {counts} terms were dropped because they "
+                    f"lie within {BIAS_MARGIN:g} times the bias that {source}, yet exceed "
+                    "that bias: they may be real, and these data cannot decide (see "
+                    f"diagnostics_.{name}); {advice} would"
+                )
         floor, counts = _equations_with(np.isfinite(self.below_floor))
         if floor.size:
             out.append(
@@ -380,6 +408,8 @@ class Diagnostics:
             f"  unstable terms per equation: {self.unstable.sum(axis=1).tolist()}",
             "  terms dropped as errors-in-variables bias per equation: "
             f"{np.isfinite(self.bias_ratio).sum(axis=1).tolist()}",
+            "  terms dropped as derivative truncation bias per equation: "
+            f"{np.isfinite(self.truncation_ratio).sum(axis=1).tolist()}",
             "  terms left out below the noise floor per equation: "
             f"{np.isfinite(self.below_floor).sum(axis=1).tolist()}",
             f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}",
@@ -449,7 +479,10 @@ class HuberSINDy(BaseEstimator):
     4. ``lam="auto"`` with the screen: selected terms within ``BIAS_MARGIN`` times the
        bias that the states' noise can give them through the other terms (errors in
        the variables, :mod:`robust_sindy.selection.bias`) are dropped one at a time
-       and the rest refitted (``bias_dropped_``);
+       and the rest refitted (``bias_dropped_``); with derivatives estimated by the
+       robust local polynomials, so are those within ``BIAS_MARGIN`` times the bias
+       that their truncation error gives them, measured against derivatives two
+       orders higher (``truncation_ratio_``: a coarsely sampled trajectory);
     5. ``lam="auto"``: selected terms whose robust t is below the bar
        (``SIGNIFICANCE``, or ``SIGNIFICANCE_ESTIMATED`` with estimated derivatives) are
        dropped, the weakest first, the rest refitted after each, in every equation with
@@ -581,6 +614,10 @@ class HuberSINDy(BaseEstimator):
         Terms dropped by step 4.
     bias_ratio_ : ndarray, shape (n_targets, n_features)
         Their coefficient over their first-order bias when dropped (NaN elsewhere).
+    truncation_ratio_ : ndarray, shape (n_targets, n_features)
+        For terms dropped as within ``BIAS_MARGIN`` times the bias the truncation
+        error of the estimated derivatives gives them: their coefficient over that
+        bias (NaN elsewhere; see ``Diagnostics.truncation_ratio``).
     below_floor_ : ndarray, shape (n_targets, n_features)
         Unselected terms whose contribution if added (one Newton step,
         :func:`robust_sindy.selection.refit.one_step_contributions`) lies between
@@ -1051,8 +1088,9 @@ class HuberSINDy(BaseEstimator):
         measured = ds is not None
         self.derivative_windows_ = np.zeros(n, dtype=int)
         self.unresolved_ = np.zeros(m, dtype=bool)
+        reference = None  # higher-order derivatives, the reference for truncation errors
         if ds is None:
-            ds, self.unresolved_ = self._derivatives(xs, ts, entry_flags, theta)
+            ds, self.unresolved_, reference = self._derivatives(xs, ts, entry_flags, theta)
         y = np.vstack(ds)
         if not np.all(np.isfinite(y)):
             raise ValueError("the derivatives contain NaN or inf")
@@ -1165,19 +1203,24 @@ class HuberSINDy(BaseEstimator):
             # the chosen support is refitted here in user units with the full one.
             coef = self._refit(theta[keep], y[keep], coef, options)
         ratio = np.full(coef.shape, np.nan)
+        truncation = np.full(coef.shape, np.nan)
         pruned = np.full(coef.shape, np.nan)
         delta_s = np.broadcast_to(self.delta_, (y.shape[1],)) / scaler.y_scale
         if self.selection_ is not None:
             kept = (theta[keep], y[keep], th, yk)  # user units, then standardised
             segments = _segments_of(keep, xs)
-            coef, ratio = self._final_selection(
-                *kept, coef, delta_s, noise, huber_method, options, segments, measured
+            # The estimated derivatives' truncation error, measured against the
+            # reference of higher order (standardised like the targets).
+            error = None if reference is None else scaler.y(y[keep] - reference[keep])
+            coef, ratio, truncation = self._final_selection(
+                *kept, coef, delta_s, noise, huber_method, options, segments, measured, error
             )
             bar = SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED
             coef, pruned = self._prune(*kept, coef, delta_s, options, segments, bar)
         self.pruned_ = np.ascontiguousarray(pruned.T)
         self.bias_ratio_ = np.ascontiguousarray(ratio.T)
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
+        self.truncation_ratio_ = np.ascontiguousarray(truncation.T)
         below = np.full(coef.shape, np.nan)
         if self.selection_ is not None and self.selection_tol_ > self.selection_tol:
             # Terms left out that the raised noise floor, not the data, decided about.
@@ -1199,31 +1242,36 @@ class HuberSINDy(BaseEstimator):
     def _derivatives(self, xs, ts, entry_flags, theta):
         """Derivatives per trajectory: of the repaired states, outliers given no weight,
         over windows the library ``theta`` cannot tell from the narrowest one (on the
-        samples the temporal screen left alone), and the samples whose derivatives the
-        sampling does not resolve (:meth:`_trajectory_derivative`)."""
-        out, windows = [], [np.zeros(xs[0].shape[1], dtype=int)]
+        samples the temporal screen left alone), the samples whose derivatives the
+        sampling does not resolve, and the higher-order derivatives of all samples
+        (stacked; None unless every trajectory has them) (:meth:`_trajectory_derivative`)."""
+        out, highs, windows = [], [], [np.zeros(xs[0].shape[1], dtype=int)]
         unresolved = np.zeros(sum(a.shape[0] for a in xs), dtype=bool)
         for seg, a, ti in zip(_segments(xs), xs, ts, strict=True):
             screened, noise = None, None
             if self.temporal_ is not None:
                 screened = (self.temporal_.repaired[seg], ~entry_flags[seg])
                 noise = self.temporal_.scale
-            d, half, unresolved[seg] = self._trajectory_derivative(
+            d, half, unresolved[seg], high = self._trajectory_derivative(
                 a, ti, screened, noise, library=theta[seg]
             )
             if half is not None:
                 windows.append(half)
             out.append(d)
+            highs.append(high)
         self.derivative_windows_ = np.max(windows, axis=0)
-        return out, unresolved
+        reference = None if any(h is None for h in highs) else np.vstack(highs)
+        return out, unresolved, reference
 
     def _trajectory_derivative(
         self, x, t, screened=None, noise=None, library=None, half=None, check=True
     ):
         """One trajectory's derivatives by ``differentiation``, the half windows of the
-        robust ones (None for the others) and the samples (m,) whose derivatives the
+        robust ones (None for the others), the samples (m,) whose derivatives the
         sampling does not resolve (:func:`unresolved_derivatives` of any moving state;
-        with robust differentiation and the screen only).
+        with robust differentiation and the screen only), and the higher-order
+        derivatives they were judged against (:func:`higher_order_derivative`; None
+        where they were not).
 
         ``screened``: ``(repaired, usable)`` from the temporal screen of ``x``, whose
         repaired states are differentiated (robust differentiation screens ``x`` itself
@@ -1236,6 +1284,7 @@ class HuberSINDy(BaseEstimator):
         """
         states = x if screened is None else screened[0]
         loose = np.zeros(x.shape, dtype=bool)
+        high = None
         if _is_robust(self.differentiation):
             if screened is None:  # screen=False: the derivatives' own screen
                 own = temporal_screen(x, t)
@@ -1244,13 +1293,19 @@ class HuberSINDy(BaseEstimator):
                 repaired, usable = screened
             d, half = self._robust_derivative(repaired, t, usable, noise, library, half)
             if self.screen and check:
-                loose = unresolved_derivatives(repaired, t, d, half, mask=usable, scale=noise)
+                high = higher_order_derivative(repaired, t, half, mask=usable, scale=noise)
+                loose = unresolved_derivatives(
+                    repaired, t, d, half, mask=usable, scale=noise, high=high
+                )
         else:
             d, half = self._differentiate(states, t), None
         still = np.ptp(states, axis=0) <= ALIAS_RTOL * np.max(np.abs(states), axis=0)
         d = np.array(d, dtype=float)
         d[:, still] = 0.0
-        return d, half, loose[:, ~still].any(axis=1)
+        if high is not None:
+            high = np.where(np.isnan(high), d, high)  # a component too short: no reference
+            high[:, still] = 0.0
+        return d, half, loose[:, ~still].any(axis=1), high
 
     def _check_params(self):
         """Every parameter checked before any work (scikit-learn style: in ``fit``)."""
@@ -1315,24 +1370,29 @@ class HuberSINDy(BaseEstimator):
         )
 
     def _final_selection(
-        self, theta, y, th, yk, coef, delta_s, noise, method, options, segments, measured
-    ):
+        self, theta, y, th, yk, coef, delta_s, noise, method, options, segments, measured,
+        error=None,
+    ):  # fmt: skip
         """On the certified refit: drop the terms below ``selection_tol``, and those
         below ``selection_tol_`` whose robust t (``segments``: the samples of each
         trajectory) is below ``SIGNIFICANCE`` (``measured`` derivatives) or
         ``SIGNIFICANCE_ESTIMATED`` (estimated ones), and those within ``BIAS_MARGIN``
         of their errors-in-variables bias (with the screen; the signed first-order bias
         for measured derivatives, its triangle bound for estimated ones), refitting
-        after each, until neither drops anything.  ``theta``, ``y`` are the
+        after each, and, with estimated derivatives whose truncation ``error``
+        (standardised, kept samples) was measured, those within ``BIAS_MARGIN`` of the
+        bias that error gives them (:func:`~robust_sindy.selection.bias.truncation_bias`),
+        until none drops anything.  ``theta``, ``y`` are the
         kept samples in user units, ``th``, ``yk`` the same standardised, ``delta_s``
         and ``method`` the Huber threshold (standardised) and method of the drops.
-        Returns the coefficients and the bias ratios of the terms the latter dropped
+        Returns the coefficients and the bias ratios of the terms the last two dropped
         (NaN elsewhere)."""
         scaler = self.standardizer_
         col = np.linalg.norm(th, axis=0)[:, None]
         ynorm = np.maximum(np.linalg.norm(yk, axis=0), np.finfo(float).tiny)
         gram = None if noise is None else noise_gram(noise)
         ratio = np.full(coef.shape, np.nan)
+        truncation = np.full(coef.shape, np.nan)
         bar = SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED
         for _ in range(STAGE_ROUNDS):
             standard = scaler.coef_to_standard(coef)
@@ -1345,21 +1405,34 @@ class HuberSINDy(BaseEstimator):
             if small.any():
                 coef[small] = 0.0
                 coef = self._refit(theta, y, coef, options)
-            if gram is None:
+            changed = bool(small.any())
+            # Terms that the errors in the variables, or the truncation error of the
+            # derivatives, could have selected are not identified.
+            drops = []
+            if gram is not None:
+                drops.append((ratio, dict(gram=gram, signed=measured)))
+            if error is not None:
+
+                def bias(c, k):
+                    return truncation_bias(th, error[:, k], c, segments)
+
+                drops.append((truncation, dict(gram=None, bias=bias)))
+            if not drops:
                 break
-            # Terms the errors in the variables could have selected are not identified.
-            _, new = drop_biased_terms(
-                th, yk, scaler.coef_to_standard(coef), delta_s, gram,
-                signed=measured, method=method, **pilot_budget(method),
-            )  # fmt: skip
-            dropped = np.isfinite(new)
-            if dropped.any():
-                ratio[dropped] = new[dropped]
-                coef[dropped] = 0.0
-                coef = self._refit(theta, y, coef, options)
-            elif not small.any():
+            for record, how in drops:
+                _, new = drop_biased_terms(
+                    th, yk, scaler.coef_to_standard(coef), delta_s, **how, method=method,
+                    **pilot_budget(method),
+                )  # fmt: skip
+                dropped = np.isfinite(new)
+                if dropped.any():
+                    record[dropped] = new[dropped]
+                    coef[dropped] = 0.0
+                    coef = self._refit(theta, y, coef, options)
+                    changed = True
+            if not changed:
                 break
-        return coef, ratio
+        return coef, ratio, truncation
 
     def _prune(self, theta, y, th, yk, coef, delta_s, options, segments, bar):
         """Drop the selected term with the smallest robust t while it is below ``bar``,
@@ -1506,6 +1579,7 @@ class HuberSINDy(BaseEstimator):
             library_noise=self.library_noise_[1],
             unstable=self._stability(theta_kept, y_kept),
             bias_ratio=self.bias_ratio_.copy(),
+            truncation_ratio=self.truncation_ratio_.copy(),
             below_floor=self.below_floor_.copy(),
             bic_margin=(
                 self.selection_.margin.copy()
@@ -1797,7 +1871,9 @@ def _chunk_derivative(block, model, dt, half, noise, check=False):
         own = temporal_screen(block, tb)
         screened = (own.repaired, ~own.flags)
         level = own.scale if noise is None else noise
-    d, _, loose = model._trajectory_derivative(block, tb, screened, level, half=half, check=check)
+    d, _, loose, _ = model._trajectory_derivative(
+        block, tb, screened, level, half=half, check=check
+    )
     return np.repeat(loose[:, None], block.shape[1], axis=1) if check else d
 
 

@@ -165,3 +165,80 @@ def test_biases_of_opposite_signs_cancel_and_the_bound_ignores_it():
     assert np.all(kept[:, 0] != 0) and np.isnan(none).all()
     dropped, ratio = drop_biased_terms(theta, y, coef[:, None], 1.0, gram, signed=False)
     assert dropped[2, 0] == 0 and ratio[2, 0] == pytest.approx(1.0)
+
+
+# --------------------------------------------------------------------------------------
+# the truncation error of estimated derivatives
+
+
+def test_truncation_bias_is_the_visible_part_of_the_projection_of_the_error():
+    from robust_sindy.selection.bias import truncation_bias
+    from robust_sindy.selection.significance import VISIBLE, robust_t
+
+    rng = np.random.default_rng(4)
+    theta = rng.normal(size=(600, 4))
+    coef = np.array([1.0, 0.3, 0.0, 0.05])
+    # An error along term 1 (a smooth one would be a truncation error), plus noise.
+    error = 0.25 * theta[:, 1] + 0.01 * rng.normal(size=600)
+    beta = truncation_bias(theta, error, coef)
+    sel = np.flatnonzero(coef)
+    b = np.linalg.lstsq(theta[:, sel], error, rcond=None)[0]
+    full = np.zeros(4)
+    full[sel] = b
+    se = np.abs(b) / robust_t(theta, error, full, np.inf)[sel]
+    assert np.allclose(beta[sel], np.maximum(np.abs(b) - VISIBLE * se, 0.0))
+    assert beta[2] == 0.0 and 0.24 < beta[1] < 0.25 and beta[0] < 0.01
+    # Noise alone is not a bias; collinear selected columns vouch for nothing.
+    assert np.all(truncation_bias(theta, 0.01 * rng.normal(size=600), coef) < 2e-3)
+    twin = np.column_stack([theta, theta[:, 0]])
+    assert np.all(np.isinf(truncation_bias(twin, error, np.append(coef, 1.0))[[0, 1, 3, 4]]))
+    # Unit-free: rescaling a column rescales its coefficient and its bias alike.
+    scaled = theta * np.array([1.0, 1e3, 1.0, 1e-3])
+    beta_s = truncation_bias(scaled, error, coef / np.array([1.0, 1e3, 1.0, 1e-3]))
+    assert np.allclose(beta_s * np.array([1.0, 1e3, 1.0, 1e-3]), beta, rtol=1e-6)
+
+
+def _coarse_lotka_volterra(dt, seed=0, m=1500):
+    from scipy.integrate import solve_ivp
+
+    def rhs(_t, v):
+        return [2 / 3 * v[0] - 4 / 3 * v[0] * v[1], v[0] * v[1] - v[1]]
+
+    t = dt * np.arange(m)
+    sol = solve_ivp(rhs, (0, t[-1]), [1.5, 0.7], t_eval=t, rtol=1e-10, atol=1e-10, method="DOP853")
+    x = sol.y.T
+    x = x + 1e-3 * x.std(axis=0) * np.random.default_rng(seed).normal(size=x.shape)
+    truth = np.zeros((2, 6), dtype=bool)  # 1, x, y, x^2, x y, y^2
+    truth[0, [1, 4]] = truth[1, [2, 4]] = True
+    return t, x, truth
+
+
+def test_coarse_sampling_truncation_terms_are_dropped_not_selected_silently():
+    # Lotka-Volterra sampled about 23 times per period, clean states, no derivatives:
+    # the derivatives' truncation error is systematic, and without this check spurious
+    # terms were selected with no warning (seeds 0-3 alike).
+    t, x, truth = _coarse_lotka_volterra(0.35, seed=0)
+    model = HuberSINDy(library=PolynomialLibrary(degree=2))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model.fit(x, t)
+    assert np.array_equal(model.support_, truth)
+    ratio = model.truncation_ratio_
+    assert np.isfinite(ratio).any() and not np.isfinite(ratio[truth]).any()
+    assert np.array_equal(model.diagnostics_.truncation_ratio, ratio, equal_nan=True)
+    if (np.nan_to_num(ratio) >= 1).any():
+        assert any("truncation error" in str(w.message) for w in caught)
+    # Densely sampled, the same system has no truncation error to speak of.
+    t, x, truth = _coarse_lotka_volterra(0.065, m=2000)
+    dense = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t)
+    assert np.array_equal(dense.support_, truth) and not np.isfinite(dense.truncation_ratio_).any()
+
+
+def test_measured_derivatives_have_no_truncation_check():
+    t, x, _ = _coarse_lotka_volterra(0.35)
+    a, b = x[:, 0], x[:, 1]
+    x_dot = np.column_stack([2 / 3 * a - 4 / 3 * a * b, a * b - b])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t, x_dot=x_dot)
+    assert not np.isfinite(model.truncation_ratio_).any()

@@ -180,3 +180,26 @@ def test_wide_windows_are_fitted_robustly_given_the_noise_scale():
     )
     with pytest.raises(ValueError, match="scale"):
         local_polynomial_derivative(x, t, 12, scale=[-1.0, 1.0])
+
+
+def test_higher_order_derivative_has_the_smaller_truncation_error():
+    from robust_sindy.differentiation import higher_order_derivative, unresolved_derivatives
+
+    t = 0.3 * np.arange(400)  # about 21 samples per period
+    x = np.column_stack([np.sin(t), 1e3 * np.cos(0.5 * t)])
+    exact = np.column_stack([np.cos(t), -500 * np.sin(0.5 * t)])
+    low = local_polynomial_derivative(x, t, 2)
+    high = higher_order_derivative(x, t, 2)
+    inner = slice(5, -5)
+    for k in range(2):
+        err_low = np.abs(low[inner, k] - exact[inner, k]).max()
+        err_high = np.abs(high[inner, k] - exact[inner, k]).max()
+        assert err_high < 0.2 * err_low
+    # Time in other units: the same derivatives, rescaled.
+    fast = higher_order_derivative(x, 1e-3 * t, 2)
+    assert np.all(np.abs(fast - 1e3 * high) <= 1e-8 * np.abs(1e3 * high).max(axis=0))
+    # The reference passed in or computed: the same unresolved samples.
+    u = unresolved_derivatives(x, t, low, 2, scale=[1e-3, 1.0])
+    assert np.array_equal(u, unresolved_derivatives(x, t, low, 2, scale=[1e-3, 1.0], high=high))
+    # Too short for the wider window: NaN.
+    assert np.isnan(higher_order_derivative(x[:6], t[:6], 2)).all()

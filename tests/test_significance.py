@@ -127,7 +127,7 @@ def test_estimated_derivatives_keep_a_term_under_the_floor_at_the_higher_bar():
     true[0, [2, 3]] = true[1, [1, 2]] = true[2, [0, 3, 6]] = True
     assert np.array_equal(model.support_, true)
     keep = ~model.screened_
-    (y,), _ = model._derivatives([x], [t], model.temporal_.flags, model.library_.transform(x))
+    (y,), _, _ = model._derivatives([x], [t], model.temporal_.flags, model.library_.transform(x))
     th = model.standardizer_.theta(model.library_.transform(x))[keep]
     yk = model.standardizer_.y(y)[keep]
     coef = model.standardizer_.coef_to_standard(model.coef_.T)

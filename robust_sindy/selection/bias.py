@@ -28,8 +28,15 @@ from __future__ import annotations
 import numpy as np
 
 from .refit import _refit_column
+from .significance import VISIBLE, robust_t
 
-__all__ = ["BIAS_MARGIN", "drop_biased_terms", "first_order_bias", "noise_gram"]
+__all__ = [
+    "BIAS_MARGIN",
+    "drop_biased_terms",
+    "first_order_bias",
+    "noise_gram",
+    "truncation_bias",
+]
 
 #: A selected term is kept only when its coefficient exceeds this many times the bias
 #: that the errors in the variables can give it.
@@ -65,6 +72,39 @@ def first_order_bias(theta, coef, gram, signed: bool = True) -> np.ndarray:
     return out
 
 
+def truncation_bias(theta, error, coef, segments=None) -> np.ndarray:
+    """Per selected term, the bias that an error ``error`` (m,) of the derivatives gives
+    its coefficient: the least-squares projection ``b = (A_S^T A_S)^{-1} A_S^T error``
+    on the selected columns ``A_S`` of ``theta`` (m, p), less ``VISIBLE`` of its
+    standard errors (the sandwich ones of :func:`robust_t`, the correlation time of
+    ``segments`` counted), so that only the part the data distinguish from the noise
+    of ``error`` counts.
+
+    With ``error`` the difference between the estimated derivatives and a reference of
+    higher order (:func:`robust_sindy.differentiation.higher_order_derivative`), this
+    is the part of each coefficient that the estimate's truncation error explains: on a
+    coarsely sampled trajectory that error is systematic and smooth, and a regression
+    explains it with spurious terms.  Returns ``beta`` (p,): 0 off the support, ``inf``
+    where the selected columns are rank deficient.
+    """
+    sel = np.flatnonzero(coef)
+    out = np.zeros(coef.shape[0])
+    if sel.size == 0:
+        return out
+    a = theta[:, sel]
+    b, _, rank, _ = np.linalg.lstsq(a, error, rcond=None)
+    if rank < sel.size:
+        out[sel] = np.inf
+        return out
+    full = np.zeros(coef.shape[0])
+    full[sel] = b
+    t = robust_t(theta, error, full, np.inf, segments)[sel]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        se = np.where(t > 0, np.abs(b) / t, np.inf)
+    out[sel] = np.maximum(np.abs(b) - VISIBLE * np.nan_to_num(se, nan=0.0), 0.0)
+    return out
+
+
 def drop_biased_terms(
     theta,
     xdot,
@@ -74,6 +114,7 @@ def drop_biased_terms(
     *,
     margin: float = BIAS_MARGIN,
     signed: bool = True,
+    bias=None,
     method: str = "admm",
     solver: str | None = None,
     **options,
@@ -84,9 +125,10 @@ def drop_biased_terms(
     ``|xi_j| / beta_j`` (:func:`first_order_bias`, ``signed`` or its bound) is below
     ``margin``, it is dropped and the others are refitted by the Huber loss with
     ``lam = 0`` (``delta`` per column; ``method``, ``solver``, ``options`` go to
-    :func:`robust_sindy.fit`).  Returns the new
-    coefficients and, for the dropped terms, their ratio when dropped (p, n; NaN for
-    the others).
+    :func:`robust_sindy.fit`).  ``bias``, a function of a column's coefficients (p,)
+    and its index returning ``beta`` (p,), replaces the first-order bias (``gram`` is
+    then not used; e.g. :func:`truncation_bias`).  Returns the new coefficients and,
+    for the dropped terms, their ratio when dropped (p, n; NaN for the others).
     """
     coef = np.array(coef, dtype=float)
     dropped = np.full(coef.shape, np.nan)
@@ -94,7 +136,7 @@ def drop_biased_terms(
     for k in range(coef.shape[1]):
         c = coef[:, k]
         while np.any(c):
-            beta = first_order_bias(theta, c, gram, signed)
+            beta = first_order_bias(theta, c, gram, signed) if bias is None else bias(c, k)
             sel = np.flatnonzero(c)
             with np.errstate(divide="ignore", invalid="ignore"):
                 ratio = np.abs(c[sel]) / beta[sel]
