@@ -60,10 +60,6 @@ _PIVOT_CUT = 1e-11
 _SEARCHES = 60  # regula falsi iterations of the line search
 _STALL = 20  # steps without halving the KKT violation after which the kernel gives up
 _RELAX = 0.1  # the damping's decrease after a full step (as in the NumPy iteration)
-#: A damped or reweighted full step is extended by the line search when the slope at its
-#: end is still below this fraction of the slope at its start (negative both): the step
-#: fell far short of the minimum along its direction, not just short of it.
-_EXTEND = 0.1
 
 
 _jit = Kernels(globals())
@@ -418,10 +414,10 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
                 break
         if full <= obj + _ARMIJO * slope0:
             t = 1.0
-            if (mu > 0.0 or reweighted) and _slope(1.0, r, q, x, d, lam, delta) < _EXTEND * slope0:
+            if (mu > 0.0 or reweighted) and _slope(1.0, r, q, x, d, lam, delta) < 0.0:
                 # A damped or reweighted step can stop short of the minimum along its
                 # direction (by orders of magnitude where few samples lie inside
-                # delta, the slope hardly changing): the line search goes on past it.
+                # delta): the line search goes on past it.
                 t = _line_search(r, q, x, d, lam, delta, slope0)
         else:
             t = _line_search(r, q, x, d, lam, delta, slope0)
