@@ -1394,6 +1394,18 @@ class HuberSINDy(BaseEstimator):
         ratio = np.full(coef.shape, np.nan)
         truncation = np.full(coef.shape, np.nan)
         bar = SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED
+        # Terms that the errors in the variables, or the truncation error of the
+        # derivatives, could have selected are not identified: each drop records its
+        # ratios in its own array.
+        drops = []
+        if gram is not None:
+            drops.append((ratio, dict(gram=gram, signed=measured)))
+        if error is not None:
+
+            def bias(c, k):
+                return truncation_bias(th, error[:, k], c, segments)
+
+            drops.append((truncation, dict(gram=None, bias=bias)))
         for _ in range(STAGE_ROUNDS):
             standard = scaler.coef_to_standard(coef)
             contrib = np.abs(standard) * col / ynorm
@@ -1406,17 +1418,6 @@ class HuberSINDy(BaseEstimator):
                 coef[small] = 0.0
                 coef = self._refit(theta, y, coef, options)
             changed = bool(small.any())
-            # Terms that the errors in the variables, or the truncation error of the
-            # derivatives, could have selected are not identified.
-            drops = []
-            if gram is not None:
-                drops.append((ratio, dict(gram=gram, signed=measured)))
-            if error is not None:
-
-                def bias(c, k):
-                    return truncation_bias(th, error[:, k], c, segments)
-
-                drops.append((truncation, dict(gram=None, bias=bias)))
             if not drops:
                 break
             for record, how in drops:
