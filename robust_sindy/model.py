@@ -37,7 +37,15 @@ from .differentiation import (
 from .library import BaseLibrary, PolynomialLibrary
 from .selection import CRITERIA, auto_delta, screen_rows, select, threshold_refit
 from .selection.aliasing import ALIAS_RTOL, aliased_columns
-from .selection.bias import BIAS_MARGIN, drop_biased_terms, noise_gram, truncation_bias
+from .selection.bias import (
+    BIAS_MARGIN,
+    carried_noise,
+    drop_biased_terms,
+    first_order_bias,
+    noise_gram,
+    residual_noise_factor,
+    truncation_bias,
+)
 from .selection.criteria import MIN_BIC_MARGIN
 from .selection.path import pilot_budget
 from .selection.refit import STAGE_ROUNDS, one_step_contributions
@@ -126,6 +134,15 @@ class Diagnostics:
         screen.  Near or above ``MAX_LIBRARY_NOISE`` the noise in the library columns
         themselves (errors in the variables, which no loss on the derivatives can
         remove) is large enough to select spurious terms or bias the coefficients.
+    noise_factor : ndarray (n,)
+        Of the states' noise variance that the temporal screen measured, the share each
+        equation's residuals allow, capped at 1
+        (:func:`robust_sindy.selection.bias.residual_noise_factor`, with the final
+        coefficients): the residuals carry the states' noise through the model whatever
+        else they carry, so a factor below 1 means the screen measured the noise too
+        large (its local polynomials cannot follow states sampled too coarsely, and
+        their truncation error counts as noise).  The errors-in-variables check uses the
+        noise this factor allows.  NaN without the screen.
     unstable : ndarray of bool (n, p)
         Selected terms whose coefficient changes sign, or by more than
         ``STABILITY_TOLERANCE`` of its value, when one of ``STABILITY_BLOCKS``
@@ -217,6 +234,7 @@ class Diagnostics:
     certified: np.ndarray
     condition_number: np.ndarray
     library_noise: float
+    noise_factor: np.ndarray
     unstable: np.ndarray
     bias_ratio: np.ndarray
     below_floor: np.ndarray
@@ -299,6 +317,7 @@ class Diagnostics:
                 "exciting trajectory"
             )
         if self.library_noise > MAX_LIBRARY_NOISE:
+            allowed = float(np.nanmax(self.noise_factor, initial=np.nan))
             out.append(
                 f"the noise of the states, carried through the library, is "
                 f"{100 * self.library_noise:.0f} % of the library's signal along its "
@@ -306,6 +325,13 @@ class Diagnostics:
                 "(errors in the variables, which measured derivatives do not remove), so "
                 "the support and coefficients may be wrong. Use less noisy states, a longer "
                 "or more exciting trajectory, or a smaller library"
+                + (
+                    f". The residuals allow at most {100 * allowed:.2g} % of that noise "
+                    "variance (diagnostics_.noise_factor): the states may be sampled too "
+                    "coarsely for the temporal screen to measure their noise"
+                    if allowed < 1
+                    else ""
+                )
             )
         shaky, counts = _equations_with(self.unstable)
         if shaky.size:
@@ -405,6 +431,8 @@ class Diagnostics:
             f"  certified: {self.certified.tolist()}",
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
             f"  library noise along its weakest direction: {self.library_noise:.2g}",
+            "  share of the measured state noise the residuals allow: "
+            f"{np.array2string(self.noise_factor, precision=2)}",
             f"  unstable terms per equation: {self.unstable.sum(axis=1).tolist()}",
             "  terms dropped as errors-in-variables bias per equation: "
             f"{np.isfinite(self.bias_ratio).sum(axis=1).tolist()}",
@@ -478,7 +506,8 @@ class HuberSINDy(BaseEstimator):
        cross-validation score (:func:`robust_sindy.selection.select`);
     4. ``lam="auto"`` with the screen: selected terms within ``BIAS_MARGIN`` times the
        bias that the states' noise can give them through the other terms (errors in
-       the variables, :mod:`robust_sindy.selection.bias`) are dropped one at a time
+       the variables, :mod:`robust_sindy.selection.bias`; the noise no larger than
+       each equation's residuals allow, ``noise_factor_``) are dropped one at a time
        and the rest refitted (``bias_dropped_``); with derivatives estimated by the
        robust local polynomials, so are those within ``BIAS_MARGIN`` times the bias
        that their truncation error gives them, measured against derivatives two
@@ -618,6 +647,9 @@ class HuberSINDy(BaseEstimator):
         For terms dropped as within ``BIAS_MARGIN`` times the bias the truncation
         error of the estimated derivatives gives them: their coefficient over that
         bias (NaN elsewhere; see ``Diagnostics.truncation_ratio``).
+    noise_factor_ : ndarray, shape (n_targets,)
+        Per equation, the share of the temporal screen's measured noise variance that
+        its residuals allow (at most 1; see ``Diagnostics.noise_factor``).
     below_floor_ : ndarray, shape (n_targets, n_features)
         Unselected terms whose contribution if added (one Newton step,
         :func:`robust_sindy.selection.refit.one_step_contributions`) lies between
@@ -1221,6 +1253,14 @@ class HuberSINDy(BaseEstimator):
         self.bias_ratio_ = np.ascontiguousarray(ratio.T)
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
         self.truncation_ratio_ = np.ascontiguousarray(truncation.T)
+        self.noise_factor_ = np.full(y.shape[1], np.nan)
+        if self.selection_ is not None and noise is not None:
+            standard = scaler.coef_to_standard(coef)
+            for k in range(y.shape[1]):
+                c = standard[:, k]
+                self.noise_factor_[k] = residual_noise_factor(
+                    yk[:, k] - th @ c, carried_noise(noise, c)
+                )
         below = np.full(coef.shape, np.nan)
         if self.selection_ is not None and self.selection_tol_ > self.selection_tol:
             # Terms left out that the raised noise floor, not the data, decided about.
@@ -1399,7 +1439,13 @@ class HuberSINDy(BaseEstimator):
         # ratios in its own array.
         drops = []
         if gram is not None:
-            drops.append((ratio, dict(gram=gram, signed=measured)))
+
+            def eiv(c, k):
+                # The measured noise, brought down to what the residuals allow.
+                factor = residual_noise_factor(yk[:, k] - th @ c, carried_noise(noise, c))
+                return first_order_bias(th, c, factor * gram, signed=measured)
+
+            drops.append((ratio, dict(gram=None, bias=eiv)))
         if error is not None:
 
             def bias(c, k):
@@ -1578,6 +1624,7 @@ class HuberSINDy(BaseEstimator):
             certified=np.asarray(self.result_.column_converged, dtype=bool),
             condition_number=cond,
             library_noise=self.library_noise_[1],
+            noise_factor=self.noise_factor_.copy(),
             unstable=self._stability(theta_kept, y_kept),
             bias_ratio=self.bias_ratio_.copy(),
             truncation_ratio=self.truncation_ratio_.copy(),

@@ -266,11 +266,12 @@ def run_case(
     methods=METHODS,
     n_samples: int = 2000,
     contamination: Contamination = ZOO_CONTAMINATION,
+    pts_per_period: int = 100,
 ) -> list[dict]:
     """Identify ``system`` under one contamination case with every method; one row each
-    (``contamination``: other parameters for held-out checks)."""
+    (``contamination``, ``pts_per_period``: other parameters for held-out checks)."""
     rng = np.random.default_rng([seed, FAMILIES.index(family), DERIVATIVES.index(derivatives)])
-    t, x, dx = simulate_system(system, n_samples, seed)
+    t, x, dx = simulate_system(system, n_samples, seed, pts_per_period)
     noisy, bad = contaminate_family(x, family, rng, contamination)
     x_dot = dx if derivatives == "exact" else None
     peer_seed = int(rng.integers(2**31))

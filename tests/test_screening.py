@@ -355,3 +355,22 @@ def test_samples_left_out_are_reported_by_cause():
     assert message.startswith("at 40 % of the samples the estimated derivatives")
     (message,) = problems(0.55, 0.27)
     assert message.startswith("55 % of the samples were left out of the fit (28 % flagged")
+
+
+def test_a_state_noise_measured_too_large_does_not_excuse_gross_errors():
+    from robust_sindy.selection import screen_rows
+
+    rng = np.random.default_rng(4)
+    m, p = 800, 4
+    theta = rng.normal(size=(m, p))
+    xi = np.array([1.0, -2.0, 0.5, 0.0])
+    noise_col = [1e-3 * rng.normal(size=(m, p))]  # the library noise of one state
+    y = theta @ xi + noise_col[0] @ xi * rng.normal(size=m)
+    bad = rng.choice(m, 80, replace=False)
+    y[bad] += rng.choice([-1.0, 1.0], 80) * rng.uniform(0.05, 0.2, 80)
+    caught = screen_rows(theta, y, noise=noise_col).outliers
+    assert set(bad) <= set(np.flatnonzero(caught))
+    # The same noise measured 1000 times too large: the residuals show it is not there,
+    # and it excuses nothing (taken at its face value it would excuse every error).
+    too_large = screen_rows(theta, y, noise=[1e3 * noise_col[0]]).outliers
+    assert np.array_equal(too_large, caught)

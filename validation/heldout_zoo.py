@@ -12,14 +12,18 @@ PySINDy's STLSQ given the same data:
 * ``bursts``: two runs of 4 % of the samples, Gaussian 0.5 (three of 2 %, 0.3);
 * ``dropouts``: 10 % of the samples read as 0 (5 %).
 
-``--set NAME=VALUE`` (repeatable) replaces one of these parameters (a field of
-``robust_sindy.zoo.Contamination``; ``spikes_range`` as ``LOW,HIGH``), e.g.
-``--set base_noise=0.01 --set heavy_dof=1``.
+``--pts-per-period N`` samples the trajectories N times per dominant period (the zoo:
+100), e.g. 12 or 25 for coarse sampling.  ``--set NAME=VALUE`` (repeatable) replaces
+one of these parameters (a field of ``robust_sindy.zoo.Contamination``;
+``spikes_range`` as ``LOW,HIGH``), e.g. ``--set base_noise=0.01 --set heavy_dof=1``;
+``--contamination zoo`` starts from the zoo's parameters instead of these.
 
 Writes ``heldout.csv`` and ``heldout.md`` to the output folder.
 
     python validation/heldout_zoo.py [--systems 16] [--seed 3] [--draw 2026]
-    [--samples 2000] [--set NAME=VALUE ...] [--out validation/results/heldout]
+    [--samples 2000] [--pts-per-period 100] [--contamination heldout|zoo]
+    [--set NAME=VALUE ...]
+    [--out validation/results/heldout]
 """
 
 import argparse
@@ -48,18 +52,18 @@ HELDOUT = zoo.Contamination(
 )
 
 
-def _case(system, family, derivatives, seed, samples, contamination):
+def _case(system, family, derivatives, seed, samples, contamination, pts_per_period=100):
     try:
         return zoo.run_case(
             system, family, derivatives, seed, methods=("huber", "stlsq"),
-            n_samples=samples, contamination=contamination,
+            n_samples=samples, contamination=contamination, pts_per_period=pts_per_period,
         )  # fmt: skip
     except RuntimeError:  # an integration that fails is left out, as in the zoo
         return []
 
 
-def contamination_with(settings) -> zoo.Contamination:
-    """``HELDOUT`` with the ``NAME=VALUE`` strings of ``settings`` applied."""
+def contamination_with(settings, base: zoo.Contamination = HELDOUT) -> zoo.Contamination:
+    """``base`` (``HELDOUT``) with the ``NAME=VALUE`` strings of ``settings`` applied."""
     fields = {f.name: f for f in dataclasses.fields(zoo.Contamination)}
     changes = {}
     for item in settings or []:
@@ -76,7 +80,7 @@ def contamination_with(settings) -> zoo.Contamination:
                 changes[name] = (int if name == "bursts" else float)(value)
         except ValueError:
             raise SystemExit(f"--set {name}: cannot read {value!r} as a number") from None
-    return dataclasses.replace(HELDOUT, **changes)
+    return dataclasses.replace(base, **changes)
 
 
 def main(argv=None):
@@ -86,15 +90,25 @@ def main(argv=None):
     parser.add_argument("--draw", type=int, default=2026, help="seed of the systems' draw")
     parser.add_argument("--samples", type=int, default=2000, help="samples per trajectory")
     parser.add_argument(
+        "--pts-per-period", type=int, default=100, help="samples per dominant period"
+    )
+    parser.add_argument(
+        "--contamination",
+        choices=("heldout", "zoo"),
+        default="heldout",
+        help="the parameters to start from (the zoo's: robust_sindy.zoo.ZOO_CONTAMINATION)",
+    )
+    parser.add_argument(
         "--set", action="append", metavar="NAME=VALUE", help="replace a contamination parameter"
     )
     parser.add_argument("--out", default="validation/results/heldout")
     args = parser.parse_args(argv)
-    contamination = contamination_with(args.set)
+    base = HELDOUT if args.contamination == "heldout" else zoo.ZOO_CONTAMINATION
+    contamination = contamination_with(args.set, base)
     systems = zoo.polynomial_systems()
     pick = np.random.default_rng(args.draw).choice(len(systems), args.systems, replace=False)
     cases = [
-        (systems[i], f, d, args.seed, args.samples, contamination)
+        (systems[i], f, d, args.seed, args.samples, contamination, args.pts_per_period)
         for i in pick
         for f in zoo.FAMILIES
         for d in zoo.DERIVATIVES
@@ -113,10 +127,14 @@ def main(argv=None):
         "",
         f"Command: `python validation/heldout_zoo.py --systems {args.systems} "
         f"--seed {args.seed} --draw {args.draw} --samples {args.samples}"
+        + (f" --pts-per-period {args.pts_per_period}" if args.pts_per_period != 100 else "")
+        + (" --contamination zoo" if args.contamination == "zoo" else "")
         + "".join(f" --set {item}" for item in args.set or [])
         + "`. "
         f"Systems: {', '.join(sorted(df.system.unique()))}. "
-        "Contamination parameters: see the script's docstring. Cells: exact-support rate.",
+        f"Contamination parameters: {args.contamination} (see the script's docstring"
+        + (f"; changed: {', '.join(args.set)}" if args.set else "")
+        + "). Cells: exact-support rate.",
         "",
         "| family | derivatives | huber | stlsq |",
         "|---|---|---|---|",

@@ -32,9 +32,12 @@ from .significance import VISIBLE, robust_t
 
 __all__ = [
     "BIAS_MARGIN",
+    "NOISE_SLACK",
+    "carried_noise",
     "drop_biased_terms",
     "first_order_bias",
     "noise_gram",
+    "residual_noise_factor",
     "truncation_bias",
 ]
 
@@ -42,10 +45,48 @@ __all__ = [
 #: that the errors in the variables can give it.
 BIAS_MARGIN = 3.0
 
+#: The states' noise is taken at its measured level unless the residuals of an
+#: equation show less than ``1 / NOISE_SLACK`` of the variance it would put in them.
+NOISE_SLACK = 4.0
+
+# The median of a chi-square variable with one degree of freedom.
+_MEDIAN_CHI2_1 = 0.454936423119572
+
 
 def noise_gram(noise_columns) -> np.ndarray:
     """``sum_k N_k^T N_k`` for the library noise per state, ``N_k = sigma_k G_k`` (m, p)."""
     return sum(a.T @ a for a in noise_columns)
+
+
+def carried_noise(noise_columns, coef) -> np.ndarray:
+    """The standard deviation (m,) of the noise that the states' noise puts in an
+    equation's residuals at every sample, first order: ``sqrt(sum_k (N_k xi)^2)`` for
+    the library noise per state ``N_k`` (m, p) and coefficients ``xi`` (p,)."""
+    return np.sqrt(sum((a @ coef) ** 2 for a in noise_columns))
+
+
+def residual_noise_factor(residual, carried) -> float:
+    """How much of the states' measured noise an equation's residuals allow, as a
+    factor (at most 1) on the noise Gram matrix.
+
+    ``residual`` (m,) are the equation's residuals and ``carried`` (m,) the standard
+    deviation, at every sample, of the noise that the states' measured noise puts in
+    them (``sqrt(sum_k (N_k xi)^2)``, first order).  The residuals contain that noise
+    whatever else they contain (the errors of derivatives estimated from a sample's
+    neighbours are independent of its own noise, and cannot cancel it): the median of
+    ``(r / carried)^2`` is at least that of a chi-square with one degree of freedom.
+    Where it is smaller than that by more than ``NOISE_SLACK``, the noise was measured
+    too large (the temporal screen counts as noise the truncation error of local
+    polynomials on a trajectory it cannot resolve), and the factor brings it down to
+    what the residuals show.  A ratio of residuals: unit-free.
+    """
+    residual = np.asarray(residual, dtype=float)
+    carried = np.asarray(carried, dtype=float)
+    ok = carried > 0
+    if not ok.any():
+        return 1.0
+    ratio = float(np.median((residual[ok] / carried[ok]) ** 2)) / _MEDIAN_CHI2_1
+    return min(1.0, NOISE_SLACK * ratio)
 
 
 def first_order_bias(theta, coef, gram, signed: bool = True) -> np.ndarray:

@@ -33,6 +33,7 @@ import scipy.ndimage
 from .._fit import ConvergenceWarning, fit
 from .._scaling import robust_scale
 from .._validation import as_float_array, check_int, check_positive, check_problem
+from .bias import residual_noise_factor
 from .path import pilot_budget
 from .scale import _check_method, auto_delta
 
@@ -695,7 +696,10 @@ def screen_rows(
     state), the bound of a sample is also at least the residual that this noise gives
     it under the pilot's model, ``sqrt(sum_k (noise_k[i] @ coef_j)^2)``: where the
     right-hand side is steep (a fast excursion) the noise of good states gives large
-    residuals, which are not gross errors.
+    residuals, which are not gross errors.  That noise is taken no larger than the
+    residuals allow (:func:`~robust_sindy.selection.bias.residual_noise_factor`): a
+    noise level measured too large (states sampled too coarsely for the temporal
+    screen) would excuse gross errors.
 
     Parameters
     ----------
@@ -760,7 +764,10 @@ def screen_rows(
         if local is not None:
             bound = np.maximum(bound, local(r))
         if noise:
-            bound = np.maximum(bound, np.sqrt(sum((a @ coef) ** 2 for a in noise)))
+            carried = np.sqrt(sum((a @ coef) ** 2 for a in noise))
+            # No more of the measured noise than the residuals themselves show.
+            factor = [residual_noise_factor(r[:, k], carried[:, k]) for k in range(r.shape[1])]
+            bound = np.maximum(bound, np.sqrt(factor) * carried)
         return bound
 
     # The pilots only propose flags: a bounded budget, their certificates not required
