@@ -128,12 +128,13 @@ class Diagnostics:
     condition_number : ndarray (n,)
         Of each equation's selected terms (unit-norm columns, kept samples).
     library_noise : float
-        The states' noise (measured by the temporal screen) carried through the
-        library, relative to the library's signal, along its least-excited direction
-        (kept samples, standardised columns, first-order propagation); NaN without the
-        screen.  Near or above ``MAX_LIBRARY_NOISE`` the noise in the library columns
-        themselves (errors in the variables, which no loss on the derivatives can
-        remove) is large enough to select spurious terms or bias the coefficients.
+        The states' noise (measured by the temporal screen, no larger than the
+        residuals allow: see ``noise_factor``) carried through the library, relative to
+        the library's signal, along its least-excited direction (kept samples,
+        standardised columns, first-order propagation); NaN without the screen.  Near
+        or above ``MAX_LIBRARY_NOISE`` the noise in the library columns themselves
+        (errors in the variables, which no loss on the derivatives can remove) is large
+        enough to select spurious terms or bias the coefficients.
     noise_factor : ndarray (n,)
         Of the states' noise variance that the temporal screen measured, the share each
         equation's residuals allow, capped at 1
@@ -317,7 +318,6 @@ class Diagnostics:
                 "exciting trajectory"
             )
         if self.library_noise > MAX_LIBRARY_NOISE:
-            allowed = float(np.nanmax(self.noise_factor, initial=np.nan))
             out.append(
                 f"the noise of the states, carried through the library, is "
                 f"{100 * self.library_noise:.0f} % of the library's signal along its "
@@ -325,13 +325,6 @@ class Diagnostics:
                 "(errors in the variables, which measured derivatives do not remove), so "
                 "the support and coefficients may be wrong. Use less noisy states, a longer "
                 "or more exciting trajectory, or a smaller library"
-                + (
-                    f". The residuals allow at most {100 * allowed:.2g} % of that noise "
-                    "variance (diagnostics_.noise_factor): the states may be sampled too "
-                    "coarsely for the temporal screen to measure their noise"
-                    if allowed < 1
-                    else ""
-                )
             )
         shaky, counts = _equations_with(self.unstable)
         if shaky.size:
@@ -432,7 +425,7 @@ class Diagnostics:
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
             f"  library noise along its weakest direction: {self.library_noise:.2g}",
             "  share of the measured state noise the residuals allow: "
-            f"{np.array2string(self.noise_factor, precision=2)}",
+            + np.array2string(self.noise_factor, formatter={"float_kind": "{:.2g}".format}),
             f"  unstable terms per equation: {self.unstable.sum(axis=1).tolist()}",
             "  terms dropped as errors-in-variables bias per equation: "
             f"{np.isfinite(self.bias_ratio).sum(axis=1).tolist()}",
@@ -624,7 +617,11 @@ class HuberSINDy(BaseEstimator):
     library_noise_ : tuple (ndarray (n_features,), float)
         The states' noise carried through the library: per column relative to its
         root mean square, and along the library's least-excited direction (see
-        :class:`Diagnostics`); NaN without the screen.
+        :class:`Diagnostics`, which reports the noise the residuals allow,
+        ``library_noise_allowed_``); NaN without the screen.
+    library_noise_allowed_ : float
+        The library noise along the least-excited direction with each state's noise
+        no larger than the residuals of the equations it enters allow.
     selection_tol_ : float
         The selection stage's threshold used (see ``selection_tol``).
     diagnostics_ : Diagnostics
@@ -1254,6 +1251,7 @@ class HuberSINDy(BaseEstimator):
         self.bias_dropped_ = np.isfinite(self.bias_ratio_)
         self.truncation_ratio_ = np.ascontiguousarray(truncation.T)
         self.noise_factor_ = np.full(y.shape[1], np.nan)
+        self.library_noise_allowed_ = self.library_noise_[1]
         if self.selection_ is not None and noise is not None:
             standard = scaler.coef_to_standard(coef)
             for k in range(y.shape[1]):
@@ -1261,6 +1259,10 @@ class HuberSINDy(BaseEstimator):
                 self.noise_factor_[k] = residual_noise_factor(
                     yk[:, k] - th @ c, carried_noise(noise, c)
                 )
+            state = _state_noise_factors(noise, standard, self.noise_factor_)
+            if np.any(state < 1):
+                allowed = [np.sqrt(f) * a for f, a in zip(state, noise, strict=True)]
+                self.library_noise_allowed_ = self._library_noise(allowed, th)[1]
         below = np.full(coef.shape, np.nan)
         if self.selection_ is not None and self.selection_tol_ > self.selection_tol:
             # Terms left out that the raised noise floor, not the data, decided about.
@@ -1623,7 +1625,7 @@ class HuberSINDy(BaseEstimator):
             ),
             certified=np.asarray(self.result_.column_converged, dtype=bool),
             condition_number=cond,
-            library_noise=self.library_noise_[1],
+            library_noise=self.library_noise_allowed_,
             noise_factor=self.noise_factor_.copy(),
             unstable=self._stability(theta_kept, y_kept),
             bias_ratio=self.bias_ratio_.copy(),
@@ -1906,6 +1908,27 @@ def _from_frames(x, t, x_dot, u):
         if all(ti is not None for ti in times):
             t = times if multiple else times[0]
     return values(x), t, values(x_dot), values(u), names
+
+
+def _state_noise_factors(noise, coef, factors) -> np.ndarray:
+    """Per state, the share of its measured noise variance that the residuals allow.
+
+    Equation ``j`` allows ``factors[j]`` of the noise variance it carries,
+    ``sum_k ||N_k xi_j||^2`` (``noise``: the library noise per state ``N_k``,
+    ``coef`` (p, n) the coefficients ``xi``): state ``k``, carrying the share
+    ``s_jk`` of it, can have at most ``factors[j] / s_jk`` of its own; the smallest
+    bound over the equations it enters counts, capped at 1 (1 for a state no
+    equation carries, whose noise no residual shows).
+    """
+    carried = np.array([[np.sum((a @ c) ** 2) for c in coef.T] for a in noise])  # (n_states, n)
+    total = carried.sum(axis=0)
+    out = np.ones(len(noise))
+    for k in range(len(noise)):
+        enters = (carried[k] > 0) & np.isfinite(factors)
+        if enters.any():
+            share = carried[k, enters] / total[enters]
+            out[k] = min(1.0, float(np.min(factors[enters] / share)))
+    return out
 
 
 def _chunk_derivative(block, model, dt, half, noise, check=False):

@@ -97,14 +97,14 @@ def _slope(t, r, q, x, d, lam, delta):
 
 
 @_jit
-def _line_search(r, q, x, d, lam, delta, slope0):
+def _line_search(r, q, x, d, lam, delta, slope0, slope1):
     """Minimiser of the convex piecewise-quadratic ``P(x + t d)``, ``t > 0``, from its
-    slope at 0 (``< 0``): a bracket by doubling from ``t = 1``, then the Illinois
-    variant of regula falsi on the slope, which is piecewise linear and nondecreasing
-    (exact once the bracket lies within one piece)."""
+    slope at 0 (``< 0``) and at 1 (NaN: not yet computed): a bracket by doubling from
+    ``t = 1``, then the Illinois variant of regula falsi on the slope, which is
+    piecewise linear and nondecreasing (exact once the bracket lies within one piece)."""
     lo, s_lo = 0.0, slope0
     hi = 1.0
-    s_hi = _slope(hi, r, q, x, d, lam, delta)
+    s_hi = _slope(hi, r, q, x, d, lam, delta) if np.isnan(slope1) else slope1
     while s_hi < 0.0 and hi < _MAX_STEP:
         lo, s_lo = hi, s_hi
         hi *= 2.0
@@ -414,13 +414,15 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
                 break
         if full <= obj + _ARMIJO * slope0:
             t = 1.0
-            if (mu > 0.0 or reweighted) and _slope(1.0, r, q, x, d, lam, delta) < 0.0:
-                # A damped or reweighted step can stop short of the minimum along its
-                # direction (by orders of magnitude where few samples lie inside
-                # delta): the line search goes on past it.
-                t = _line_search(r, q, x, d, lam, delta, slope0)
+            if mu > 0.0 or reweighted:
+                slope1 = _slope(1.0, r, q, x, d, lam, delta)
+                if slope1 < 0.0:
+                    # A damped or reweighted step can stop short of the minimum along
+                    # its direction (by orders of magnitude where few samples lie
+                    # inside delta): the line search goes on past it.
+                    t = _line_search(r, q, x, d, lam, delta, slope0, slope1)
         else:
-            t = _line_search(r, q, x, d, lam, delta, slope0)
+            t = _line_search(r, q, x, d, lam, delta, slope0, np.nan)
             if not t > 0.0:
                 status = 4
                 break
