@@ -44,6 +44,7 @@ from .selection.bias import (
     first_order_bias,
     noise_gram,
     residual_noise_factor,
+    state_noise_factors,
     truncation_bias,
 )
 from .selection.criteria import MIN_BIC_MARGIN
@@ -1259,7 +1260,7 @@ class HuberSINDy(BaseEstimator):
                 self.noise_factor_[k] = residual_noise_factor(
                     yk[:, k] - th @ c, carried_noise(noise, c)
                 )
-            state = _state_noise_factors(noise, standard, self.noise_factor_)
+            state = state_noise_factors(noise, standard, self.noise_factor_)
             if np.any(state < 1):
                 allowed = [np.sqrt(f) * a for f, a in zip(state, noise, strict=True)]
                 self.library_noise_allowed_ = self._library_noise(allowed, th)[1]
@@ -1908,27 +1909,6 @@ def _from_frames(x, t, x_dot, u):
         if all(ti is not None for ti in times):
             t = times if multiple else times[0]
     return values(x), t, values(x_dot), values(u), names
-
-
-def _state_noise_factors(noise, coef, factors) -> np.ndarray:
-    """Per state, the share of its measured noise variance that the residuals allow.
-
-    Equation ``j`` allows ``factors[j]`` of the noise variance it carries,
-    ``sum_k ||N_k xi_j||^2`` (``noise``: the library noise per state ``N_k``,
-    ``coef`` (p, n) the coefficients ``xi``): state ``k``, carrying the share
-    ``s_jk`` of it, can have at most ``factors[j] / s_jk`` of its own; the smallest
-    bound over the equations it enters counts, capped at 1 (1 for a state no
-    equation carries, whose noise no residual shows).
-    """
-    carried = np.array([[np.sum((a @ c) ** 2) for c in coef.T] for a in noise])  # (n_states, n)
-    total = carried.sum(axis=0)
-    out = np.ones(len(noise))
-    for k in range(len(noise)):
-        enters = (carried[k] > 0) & np.isfinite(factors)
-        if enters.any():
-            share = carried[k, enters] / total[enters]
-            out[k] = min(1.0, float(np.min(factors[enters] / share)))
-    return out
 
 
 def _chunk_derivative(block, model, dt, half, noise, check=False):

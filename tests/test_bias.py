@@ -295,7 +295,7 @@ def test_coarse_clean_states_with_measured_derivatives_keep_their_terms():
 
 
 def test_each_state_keeps_the_noise_the_equations_it_enters_allow():
-    from robust_sindy.model import _state_noise_factors
+    from robust_sindy.selection.bias import state_noise_factors
 
     rng = np.random.default_rng(0)
     g = rng.normal(size=(200, 2))
@@ -303,9 +303,9 @@ def test_each_state_keeps_the_noise_the_equations_it_enters_allow():
     # state 0 carries all of equation 0's noise and half of equation 1's; state 1 the rest
     coef = np.array([[1.0, 1.0], [0.0, 1.0]])
     coef[1, 1] *= np.linalg.norm(g[:, 0]) / np.linalg.norm(g[:, 1])
-    np.testing.assert_allclose(_state_noise_factors(noise, coef, np.array([0.01, 1.0])), [0.01, 1])
+    np.testing.assert_allclose(state_noise_factors(noise, coef, np.array([0.01, 1.0])), [0.01, 1])
     # equation 1 allows a quarter: each state at most half of it (its share is half)
-    np.testing.assert_allclose(_state_noise_factors(noise, coef, np.array([1.0, 0.25])), [0.5, 0.5])
+    np.testing.assert_allclose(state_noise_factors(noise, coef, np.array([1.0, 0.25])), [0.5, 0.5])
     # a state that no equation carries keeps its measured noise
     coef[1, 1] = 0.0
-    np.testing.assert_allclose(_state_noise_factors(noise, coef, np.array([1e-3, 1e-3])), [1e-3, 1])
+    np.testing.assert_allclose(state_noise_factors(noise, coef, np.array([1e-3, 1e-3])), [1e-3, 1])

@@ -38,6 +38,7 @@ __all__ = [
     "first_order_bias",
     "noise_gram",
     "residual_noise_factor",
+    "state_noise_factors",
     "truncation_bias",
 ]
 
@@ -87,6 +88,27 @@ def residual_noise_factor(residual, carried) -> float:
         return 1.0
     ratio = float(np.median((residual[ok] / carried[ok]) ** 2)) / _MEDIAN_CHI2_1
     return min(1.0, NOISE_SLACK * ratio)
+
+
+def state_noise_factors(noise, coef, factors) -> np.ndarray:
+    """Per state, the share of its measured noise variance that the residuals allow.
+
+    Equation ``j`` allows ``factors[j]`` of the noise variance it carries,
+    ``sum_k ||N_k xi_j||^2`` (``noise``: the library noise per state ``N_k``,
+    ``coef`` (p, n) the coefficients ``xi``): state ``k``, carrying the share
+    ``s_jk`` of it, can have at most ``factors[j] / s_jk`` of its own; the smallest
+    bound over the equations it enters counts, capped at 1 (1 for a state no
+    equation carries, whose noise no residual shows).
+    """
+    carried = np.array([[np.sum((a @ c) ** 2) for c in coef.T] for a in noise])  # (n_states, n)
+    total = carried.sum(axis=0)
+    out = np.ones(len(noise))
+    for k in range(len(noise)):
+        enters = (carried[k] > 0) & np.isfinite(factors)
+        if enters.any():
+            share = carried[k, enters] / total[enters]
+            out[k] = min(1.0, float(np.min(factors[enters] / share)))
+    return out
 
 
 def first_order_bias(theta, coef, gram, signed: bool = True) -> np.ndarray:

@@ -33,7 +33,7 @@ import scipy.ndimage
 from .._fit import ConvergenceWarning, fit
 from .._scaling import robust_scale
 from .._validation import as_float_array, check_int, check_positive, check_problem
-from .bias import residual_noise_factor
+from .bias import carried_noise, residual_noise_factor
 from .path import pilot_budget
 from .scale import _check_method, auto_delta
 
@@ -764,7 +764,7 @@ def screen_rows(
         if local is not None:
             bound = np.maximum(bound, local(r))
         if noise:
-            carried = np.sqrt(sum((a @ coef) ** 2 for a in noise))
+            carried = carried_noise(noise, coef)
             # No more of the measured noise than the residuals themselves show.
             factor = [residual_noise_factor(r[:, k], carried[:, k]) for k in range(r.shape[1])]
             bound = np.maximum(bound, np.sqrt(factor) * carried)
