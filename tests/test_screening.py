@@ -5,7 +5,7 @@ import warnings
 import numpy as np
 import pytest
 
-from robust_sindy import HuberSINDy, PolynomialLibrary
+from robust_sindy import HuberSINDy, PolynomialLibrary, _compiled
 from robust_sindy.differentiation import local_polynomial_derivative
 from robust_sindy.model import IdentificationWarning
 from robust_sindy.selection import correlation_time
@@ -374,3 +374,75 @@ def test_a_state_noise_measured_too_large_does_not_excuse_gross_errors():
     # and it excuses nothing (taken at its face value it would excuse every error).
     too_large = screen_rows(theta, y, noise=[1e3 * noise_col[0]]).outliers
     assert np.array_equal(too_large, caught)
+
+
+def _numpy_only(monkeypatch):
+    """Make the temporal screen's compiled kernels report that they cannot run."""
+    from robust_sindy.selection import _temporal_kernels
+
+    monkeypatch.setattr(_temporal_kernels, "lts_windows", lambda *a, **k: None)
+    monkeypatch.setattr(_temporal_kernels, "loo_predict", lambda *a, **k: None)
+
+
+@pytest.mark.skipif(not _compiled.AVAILABLE, reason="numba is not installed")
+@pytest.mark.parametrize("seed", range(6))
+def test_compiled_local_fits_agree_with_the_numpy_ones(seed, monkeypatch):
+    # Trimmed fits and leave-one-out predictions: compiled, then the NumPy array
+    # code on the same data (uniform and irregular times, gross errors, any units).
+    from robust_sindy.selection.screening import _clean_neighbours, _loo_predict, _lts_fitted
+
+    rng = np.random.default_rng(seed)
+    m = int(rng.integers(14, 2500))
+    t = np.sort(rng.uniform(0, 10, m)) if seed % 2 else np.linspace(0, rng.uniform(0.1, 100), m)
+    x = np.sin(t * rng.uniform(0.5, 3)) * 10.0 ** rng.uniform(-5, 5)
+    x = x + 1e-3 * np.abs(x).max() * rng.standard_t(2, m)
+    bad = rng.random(m) < 0.1
+    x[bad] += np.abs(x).max() * rng.normal(size=bad.sum())
+    flags = rng.random(m) < 0.2
+    nb = _clean_neighbours(flags, 4)
+    compiled = (_lts_fitted(x, t), *_loo_predict(x, t, nb, 4))
+    _numpy_only(monkeypatch)
+    numpy = (_lts_fitted(x, t), *_loo_predict(x, t, nb, 4))
+    for a, b in zip(compiled, numpy, strict=True):
+        assert np.abs(a - b).max() <= 1e-9 * np.abs(b).max()
+
+
+@pytest.mark.skipif(not _compiled.AVAILABLE, reason="numba is not installed")
+def test_temporal_screen_flags_the_same_entries_without_the_kernels(monkeypatch):
+    t, _, x = _smooth(seed=4, noise=1e-3)
+    rng = np.random.default_rng(4)
+    spikes = rng.random(x.shape) < 0.03
+    x = x + spikes * rng.choice([-1.0, 1.0], x.shape) * 0.5
+    compiled = temporal_screen(x, t)
+    _numpy_only(monkeypatch)
+    numpy = temporal_screen(x, t)
+    assert np.array_equal(compiled.flags, numpy.flags)
+    assert np.allclose(compiled.repaired, numpy.repaired, rtol=1e-9, atol=0)
+    assert compiled.flags[spikes].mean() > 0.9
+
+
+def test_a_state_constant_up_to_rounding_has_no_flags():
+    # A state that does not move, stored as floats with rounding-level wobble: its
+    # scale is rounding, and none of its entries may be flagged by it (in any units).
+    t, x, _ = _smooth(seed=5)
+    rng = np.random.default_rng(5)
+    for level in (1e-8, 1.0, 1e8):
+        still = -13.72884 * level * (1.0 + 1e-15 * rng.choice([-1, 0, 1], t.size))
+        s = temporal_screen(np.column_stack([x[:, 0], still]), t)
+        assert not s.flags[:, 1].any()
+        assert np.all(s.repaired[:, 1] == still)
+
+
+def test_the_screen_runs_where_its_kernels_cannot_compile(monkeypatch):
+    from robust_sindy.selection import _temporal_kernels
+
+    t, _, x = _smooth(seed=6)
+    reference = temporal_screen(x, t)
+    monkeypatch.setattr(_temporal_kernels._jit, "broken", "numba cannot compile here")
+    assert (
+        _temporal_kernels.loo_predict(x[:, 0], t, np.zeros((t.size, 2), int), 1, np.arange(t.size))
+        is None
+    )
+    again = temporal_screen(x, t)
+    assert np.array_equal(again.flags, reference.flags)
+    assert np.allclose(again.repaired, reference.repaired, rtol=1e-9, atol=0)

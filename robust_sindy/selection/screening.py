@@ -33,6 +33,7 @@ import scipy.ndimage
 from .._fit import ConvergenceWarning, fit
 from .._scaling import robust_scale
 from .._validation import as_float_array, check_int, check_positive, check_problem
+from . import _temporal_kernels
 from .bias import carried_noise, residual_noise_factor
 from .path import pilot_budget
 from .scale import _check_method, auto_delta
@@ -50,6 +51,10 @@ __all__ = [
 #: ``1e-4`` of a signal's spread change no identification, and on noise-free data the
 #: smooth bias of the local fits must not be mistaken for an outlier.
 _SCALE_FLOOR = 1e-4
+#: Floor of the temporal screen's scales relative to the largest magnitude of a
+#: component (about 4500 rounding units): a component constant up to rounding (a state
+#: that does not move, stored as floats) must not have entries flagged by its rounding.
+_ROUNDING_FLOOR = 1e-12
 #: Rounds of the model-based screen in which flags may also be withdrawn.
 _FREE_ROUNDS = 5
 #: How many times more some library direction must be excited (mean square per sample)
@@ -202,6 +207,9 @@ def _loo_predict(x, t, nb, degree, at=None):
     (m, 2h; -1 unused), and the factor ``sqrt(1 + sum_j w_j^2)`` by which the prediction
     error's standard deviation exceeds that of the noise.  ``at``: the samples whose
     neighbours the rows of ``nb`` are (all samples when omitted)."""
+    done = _temporal_kernels.loo_predict(x, t, nb, degree, np.arange(t.size) if at is None else at)
+    if done is not None:
+        return done
     valid = nb >= 0
     idx = np.where(valid, nb, 0)
     here = t if at is None else t[at]
@@ -300,11 +308,15 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
     Starts from elemental fits (interpolating polynomials through a few samples of the
     window), keeps the best after one concentration step (refit on the ``q`` samples
     with the smallest residuals, ``q`` just over half the window), and iterates those:
-    the fit ignores up to ``w - q`` gross errors in every window, wherever they are."""
+    the fit ignores up to ``w - q`` gross errors in every window, wherever they are.
+    The windows run in a compiled loop (:mod:`._temporal_kernels`); where it cannot be
+    compiled, in NumPy array expressions (:func:`_concentrate`), to rounding the same."""
     m, h, d = x.size, _LTS_HALF, _LTS_DEGREE
     w = min(2 * h + 1, m)
-    eye = _LTS_RIDGE * np.eye(d + 1)
-    subsets = _elemental_subsets(w, d + 1, _LTS_STARTS)
+    a = d + 1
+    q = (w + (a - 1) + 2) // 2 + 1
+    eye = _LTS_RIDGE * np.eye(a)
+    subsets = _elemental_subsets(w, a, _LTS_STARTS)
     out = np.empty(m)
     for lo in range(0, m, _LTS_BATCH):
         i = np.arange(lo, min(lo + _LTS_BATCH, m))
@@ -313,31 +325,53 @@ def _lts_fitted(x: np.ndarray, t: np.ndarray) -> np.ndarray:
         tau = t[idx] - t[i][:, None]
         span = np.abs(tau).max(axis=1, keepdims=True)
         tau = tau / np.where(span > 0, span, 1.0)  # relative time: unit-free
-        xw = x[idx]  # (b, w)
         place = i - first
         pattern = np.zeros((w, w))
         pattern[place] = tau  # one window per place (any: they agree when uniform)
         if np.abs(tau - pattern[place]).max() <= 1e-9:
             # Uniformly sampled windows: the relative times depend only on the sample's
             # place in its window, so the windows of one place share their polynomial
-            # rows and every product below is one matrix product for all of them.
-            for at in np.unique(place):
-                rows = np.flatnonzero(place == at)
-                v = pattern[at][:, None] ** np.arange(d + 1)  # (w, d+1)
-                inverse = np.linalg.inv(v[subsets] + eye)  # (K, d+1, d+1)
-                # The elemental coefficients as one linear map of the window's values.
-                elemental = np.zeros((w, subsets.shape[0], d + 1))
-                for j in range(d + 1):
-                    elemental[subsets[:, j], np.arange(subsets.shape[0])] = inverse[:, :, j]
-                coef = _times(xw[rows, None, :], elemental.reshape(w, -1))
-                c = _concentrate(xw[rows], coef.reshape(rows.size, -1, d + 1), v)
-                out[i[rows]] = c @ v[at]
+            # rows and elemental inverses.
+            v = pattern[..., None] ** np.arange(a)  # (w places, w, a)
+            which, shared = place, True
         else:
-            v = tau[..., None] ** np.arange(d + 1)  # (b, w, d+1)
-            coef = np.linalg.solve(v[:, subsets] + eye, xw[:, subsets][..., None])[..., 0]
-            c = _concentrate(xw, coef, v)
-            out[i] = np.sum(v[np.arange(i.size), place] * c, axis=1)
+            v = tau[..., None] ** np.arange(a)  # (b, w, a)
+            which, shared = np.arange(i.size), False
+        fitted = _temporal_kernels.lts_windows(
+            x, first, place, which, v, np.linalg.inv(v[:, subsets] + eye),
+            subsets, q, _LTS_STEPS, _LTS_KEEP, _LTS_RIDGE,
+        )  # fmt: skip
+        if fitted is None:
+            fitted = _lts_numpy(x[idx], v, which, place, subsets, shared)
+        out[i] = fitted
     return out
+
+
+def _lts_numpy(xw, v, which, place, subsets, shared):
+    """The trimmed fits of the windows ``xw`` (b, w) in NumPy array expressions: ``v``
+    (P, w, a) the polynomial rows of the patterns ``which`` (b,) of the windows, one
+    per place in the window when ``shared``, else one per window."""
+    a = v.shape[-1]
+    eye = _LTS_RIDGE * np.eye(a)
+    out = np.empty(xw.shape[0])
+    if shared:
+        # One pattern per place: every product below is one matrix product for all the
+        # windows of a place.
+        w = xw.shape[1]
+        for at in np.unique(which):
+            rows = np.flatnonzero(which == at)
+            inverse = np.linalg.inv(v[at][subsets] + eye)  # (K, a, a)
+            # The elemental coefficients as one linear map of the window's values.
+            elemental = np.zeros((w, subsets.shape[0], a))
+            for j in range(a):
+                elemental[subsets[:, j], np.arange(subsets.shape[0])] = inverse[:, :, j]
+            coef = _times(xw[rows, None, :], elemental.reshape(w, -1))
+            c = _concentrate(xw[rows], coef.reshape(rows.size, -1, a), v[at])
+            out[rows] = c @ v[at][place[rows[0]]]
+        return out
+    coef = np.linalg.solve(v[:, subsets] + eye, xw[:, subsets][..., None])[..., 0]
+    c = _concentrate(xw, coef, v)
+    return np.sum(v[np.arange(xw.shape[0]), place] * c, axis=1)
 
 
 def _times(a: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -408,7 +442,10 @@ def _unresolved(x, err, flags, h, cutoff, floor):
 
 
 def _screen_one(x, t, h, degree, cutoff, scale_half):
-    floor = _SCALE_FLOOR * np.maximum(x.std(axis=0), np.finfo(float).tiny)
+    floor = np.maximum(
+        _SCALE_FLOOR * np.maximum(x.std(axis=0), np.finfo(float).tiny),
+        _ROUNDING_FLOOR * np.abs(x).max(axis=0),
+    )
 
     def gross(err):
         # The running median of the errors is the fit's smooth bias (e.g. along a fast
