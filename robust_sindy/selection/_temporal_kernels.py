@@ -34,13 +34,14 @@ _jit = Kernels(globals())
 
 
 @_jit
-def _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits):
+def _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits, below):
     """For the first ``nk`` fits (columns of ``coef``, (a, K)) of the window
     ``x[f : f + w]`` with rows ``V[p]``: the squared residuals ``r2`` (w, K), the
     ``q``-th smallest of each column (``cut``; the ``w - q + 1`` largest kept in
     ``top`` by a branch-free insertion), the sum of its ``q`` smallest (``trimmed``,
     the ties at the cut counted once each up to ``q``) and the bits of the samples at
-    or below the cut (``bits``).  The loops run across the fits, so they vectorise."""
+    or below the cut (``bits``); ``below`` is work space.  The loops run across the
+    fits, so they vectorise."""
     w, a = V.shape[1], V.shape[2]
     L = w - q + 1
     for j in range(w):
@@ -66,7 +67,7 @@ def _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits):
         cut[k] = top[L - 1, k]
         trimmed[k] = 0.0
         bits[k] = 0
-    below = np.zeros(nk, dtype=np.int64)
+        below[k] = 0
     for j in range(w):
         for k in range(nk):
             v = r2[j, k]
@@ -79,11 +80,40 @@ def _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits):
 
 
 @_jit
-def _refit(x, f, V, Pw, p, mask, ridge, coef, k, mom, b, low, z):
+def _cholesky_solve(gram, rhs, low, out):
+    """Solve ``gram out = rhs`` for a small symmetric positive definite ``gram`` (its
+    lower triangle is read) by Cholesky, pivots floored at the smallest normal number;
+    ``low`` is work space."""
+    a = rhs.size
+    tiny = np.finfo(np.float64).tiny
+    for c in range(a):
+        diag = gram[c, c]
+        for e in range(c):
+            diag -= low[c, e] ** 2
+        low[c, c] = np.sqrt(max(diag, tiny))
+        for r in range(c + 1, a):
+            s = gram[r, c]
+            for e in range(c):
+                s -= low[r, e] * low[c, e]
+            low[r, c] = s / low[c, c]
+    for c in range(a):
+        s = rhs[c]
+        for e in range(c):
+            s -= low[c, e] * out[e]
+        out[c] = s / low[c, c]
+    for c in range(a - 1, -1, -1):
+        s = out[c]
+        for e in range(c + 1, a):
+            s -= low[e, c] * out[e]
+        out[c] = s / low[c, c]
+
+
+@_jit
+def _refit(x, f, V, Pw, p, mask, ridge, coef, k, mom, b, gram, low, z):
     """Least squares of the window ``x[f : f + w]`` on the rows ``V[p]`` in the bits
     of ``mask`` (the Hankel normal equations of
     :func:`robust_sindy.selection.screening._hankel_solve`), into ``coef[:, k]``;
-    ``mom``, ``b``, ``low`` and ``z`` are work space."""
+    ``mom``, ``b``, ``gram``, ``low`` and ``z`` are work space."""
     w, a = V.shape[1], V.shape[2]
     ne = Pw.shape[2]
     mom[:] = 0.0
@@ -94,27 +124,13 @@ def _refit(x, f, V, Pw, p, mask, ridge, coef, k, mom, b, low, z):
                 mom[e] += Pw[p, j, e]
             for c in range(a):
                 b[c] += x[f + j] * V[p, j, c]
-    tiny = np.finfo(np.float64).tiny
-    for j in range(a):
-        diag = mom[2 * j] + ridge
-        for i in range(j):
-            diag -= low[j, i] ** 2
-        low[j, j] = np.sqrt(max(diag, tiny))
-        for i in range(j + 1, a):
-            s = mom[i + j]
-            for c in range(j):
-                s -= low[i, c] * low[j, c]
-            low[i, j] = s / low[j, j]
-    for i in range(a):
-        s = b[i]
-        for c in range(i):
-            s -= low[i, c] * z[c]
-        z[i] = s / low[i, i]
-    for i in range(a - 1, -1, -1):
-        s = z[i]
-        for c in range(i + 1, a):
-            s -= low[c, i] * coef[c, k]
-        coef[i, k] = s / low[i, i]
+    for r in range(a):
+        for c in range(r + 1):
+            gram[r, c] = mom[r + c]
+        gram[r, r] += ridge
+    _cholesky_solve(gram, b, low, z)
+    for c in range(a):
+        coef[c, k] = z[c]
 
 
 @_jit
@@ -130,13 +146,15 @@ def _windows(x, first, place, pattern, V, Pw, inverse, subsets, q, steps, keep, 
     spare = np.empty((a, K))
     r2 = np.empty((w, K))
     top = np.empty((w, K))
-    cut = np.empty(K)  # work space of _rank
+    cut = np.empty(K)
     trimmed = np.empty(K)
     bits = np.empty(K, dtype=np.int64)
     mom = np.empty(2 * a - 1)
     rhs = np.empty(a)
+    gram = np.empty((a, a))
     low = np.empty((a, a))
     z = np.empty(a)
+    below = np.empty(K, dtype=np.int64)
     # The fits of the masks met in the window (a refit depends on its mask only, and
     # most starts of a window end on the same few masks).
     seen = np.empty(K * max(steps, 1), dtype=np.int64)
@@ -153,7 +171,7 @@ def _windows(x, first, place, pattern, V, Pw, inverse, subsets, q, steps, keep, 
                 coef[c, k] = s
         nk = K
         for step in range(steps):
-            _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits)
+            _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits, below)
             if step == 1 and nk > keep:
                 order = np.argsort(trimmed[:nk])[:keep]
                 kept = bits[order]
@@ -173,12 +191,12 @@ def _windows(x, first, place, pattern, V, Pw, inverse, subsets, q, steps, keep, 
                     for c in range(a):
                         coef[c, k] = seen_coef[hit, c]
                     continue
-                _refit(x, f, V, Pw, p, bits[k], ridge, coef, k, mom, rhs, low, z)
+                _refit(x, f, V, Pw, p, bits[k], ridge, coef, k, mom, rhs, gram, low, z)
                 seen[nseen] = bits[k]
                 for c in range(a):
                     seen_coef[nseen, c] = coef[c, k]
                 nseen += 1
-        _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits)
+        _rank(x, f, V, p, coef, nk, q, r2, top, cut, trimmed, bits, below)
         best = 0
         for k in range(1, nk):
             if trimmed[k] < trimmed[best]:
@@ -229,7 +247,8 @@ def _loo(x, t, nb, at, degree, pred, factor):
     gram = np.empty((a, a))
     low = np.empty((a, a))
     z = np.empty(a)
-    tiny = np.finfo(np.float64).tiny
+    unit = np.zeros(a)
+    unit[0] = 1.0
     key = np.empty(width, dtype=np.int64)
     last = np.empty(width, dtype=np.int64)
     weights = np.empty(width)
@@ -251,7 +270,7 @@ def _loo(x, t, nb, at, degree, pred, factor):
                 key[j] = unused
             same = same and key[j] == last[j]
         if not same:
-            _loo_weights(t, nb, i, here, span, a, V, gram, low, z, weights, tiny)
+            _loo_weights(t, nb, i, here, span, a, V, gram, unit, low, z, weights)
             for j in range(width):
                 last[j] = key[j]
             have = True
@@ -266,7 +285,7 @@ def _loo(x, t, nb, at, degree, pred, factor):
 
 
 @_jit
-def _loo_weights(t, nb, i, here, span, a, V, gram, low, z, weights, tiny):
+def _loo_weights(t, nb, i, here, span, a, V, gram, unit, low, z, weights):
     """The weights of sample ``i``'s leave-one-out prediction from its neighbours."""
     width = nb.shape[1]
     for j in range(width):
@@ -288,28 +307,8 @@ def _loo_weights(t, nb, i, here, span, a, V, gram, low, z, weights, tiny):
         trace += gram[c, c]
     for c in range(a):
         gram[c, c] += 1e-12 * trace
-    # Cholesky of gram, then gram z = e_0: the weights of the value at tau = 0 are
-    # V z (row 0 of gram^-1 V^T).
-    for c in range(a):
-        diag = gram[c, c]
-        for e in range(c):
-            diag -= low[c, e] ** 2
-        low[c, c] = np.sqrt(max(diag, tiny))
-        for r in range(c + 1, a):
-            s = gram[r, c]
-            for e in range(c):
-                s -= low[r, e] * low[c, e]
-            low[r, c] = s / low[c, c]
-    for c in range(a):
-        s = 1.0 if c == 0 else 0.0
-        for e in range(c):
-            s -= low[c, e] * z[e]
-        z[c] = s / low[c, c]
-    for c in range(a - 1, -1, -1):
-        s = z[c]
-        for e in range(c + 1, a):
-            s -= low[e, c] * z[e]
-        z[c] = s / low[c, c]
+    # gram z = e_0: the weights of the value at tau = 0 are V z (row 0 of gram^-1 V^T).
+    _cholesky_solve(gram, unit, low, z)
     for j in range(width):
         wj = 0.0
         for c in range(a):
