@@ -273,7 +273,8 @@ _KERNEL_CASES = _kernel_cases()
 
 
 def _record_kernel_statuses(monkeypatch) -> list:
-    """A list that gets the per-column status of every call of the compiled iteration."""
+    """A list that gets the per-column status of every call of the compiled iteration
+    (fits; a path walk hands a point it cannot certify over to such a fit)."""
     statuses = []
     original = _kernel.newton_kernel
 
@@ -379,5 +380,5 @@ def test_the_compiled_iteration_certifies_every_column_of_the_automatic_pipeline
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rs.HuberSINDy().fit(x, t=t, x_dot=x_dot)
-    assert len(statuses) > 50
+    assert len(statuses) > 20
     assert all(np.all(s == 0) for s in statuses) and not numpy_runs

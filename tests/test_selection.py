@@ -66,6 +66,61 @@ def test_warm_path_matches_cold_fits(seed):
         assert np.all(warm.objective[i] <= ref.objective * (1 + 1e-7))
 
 
+def _walk_cases():
+    from robust_sindy.bench import bench_problem
+
+    cases = {
+        f"random {seed}": (*random_problem(seed + 20), np.array([1.0, 0.3])) for seed in range(2)
+    }
+    theta, y = bench_problem(1000, 2)
+    cases["lorenz, rows contaminated"] = (theta, y, 1.0)
+    return cases
+
+
+@pytest.mark.parametrize("name", ["random 0", "random 1", "lorenz, rows contaminated"])
+def test_the_compiled_walk_matches_the_path_solved_point_by_point(name, monkeypatch):
+    from robust_sindy.solvers import _kernel
+    from robust_sindy.solvers import newton as nw
+
+    if not _kernel.usable():
+        pytest.skip("numba is not installed")
+    theta, y, delta = _walk_cases()[name]
+    walks = []
+    original = nw.solve_path
+    monkeypatch.setattr(
+        nw, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
+    )
+    walked = path(theta, y, delta)
+    assert walks and walks[0] is not None, "the compiled walk did not run"
+    cold = path(theta, y, delta, walked.lams, warm_start=False)  # every point on its own
+    assert walked.converged.all() and cold.converged.all()
+    rel = np.abs(walked.objective - cold.objective) / np.abs(cold.objective)
+    assert rel.max() <= 1e-10
+    assert np.array_equal(walked.n_nonzero, cold.n_nonzero)
+
+
+def test_a_walk_hands_the_points_it_cannot_certify_over_and_goes_on(monkeypatch):
+    from robust_sindy.solvers import _kernel
+    from robust_sindy.solvers import newton as nw
+
+    if not _kernel.usable():
+        pytest.skip("numba is not installed")
+    theta, y, delta = _walk_cases()["lorenz, rows contaminated"]
+    reference = path(theta, y, delta)
+    walks = []
+    original = nw.solve_path
+    monkeypatch.setattr(
+        nw, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
+    )
+    monkeypatch.setattr(nw, "KERNEL_STEPS", 2)  # most points need more steps than that
+    short = path(theta, y, delta, reference.lams)
+    info = walks[0][2]
+    assert 0 < info["handed_over"] < reference.lams.shape[0] * y.shape[1]
+    assert short.converged.all()
+    rel = np.abs(short.objective - reference.objective) / np.abs(reference.objective)
+    assert rel.max() <= 1e-10
+
+
 def test_path_cold_option_and_cvxpy_agree():
     theta, y = random_problem(3, m=150, p=6, n=1)
     lams = np.geomspace(lambda_max(theta, y, 1.0), 1e-3, 6)

@@ -12,7 +12,10 @@ still negative there: on near-least-absolute-deviation pieces such a step can be
 of magnitude too short), with the NumPy iteration's Levenberg-Marquardt rule and its
 proximal-gradient step where the direction is no descent direction.  The passes over
 the library are BLAS products.  At ``m = 1000`` a step costs tens of microseconds
-instead of the ~0.5 ms of NumPy calls.
+instead of the ~0.5 ms of NumPy calls.  Along a ``lam`` grid (:func:`newton_path_kernel`)
+each point starts from the last one's solution and reuses its last pass and its inlier
+Gram matrix: a warm point no longer pays one pass and one Gram matrix before its first
+step.
 
 A column ends when its relative KKT violation (the formula of
 :func:`robust_sindy._certificates.kkt_from_gradient`) is below ``tol / 10``, after
@@ -43,7 +46,7 @@ import numpy as np
 from .._compiled import AVAILABLE, Kernels
 from .newton import _ARMIJO, _DIRECT_GRAM, _DRIFT, _LM, _MAX_STEP, _UPDATE_ROWS
 
-__all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel", "usable"]
+__all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel", "newton_path_kernel", "usable"]
 
 #: Meaning of the kernel's status per column.
 KERNEL_STATUS = {
@@ -232,15 +235,14 @@ def _support_step(M, g, lam, sigma, sup, x, mu, d):
 
 
 @_jit
-def _evaluate(theta, scale, y, delta, lam, x, norms, r, psi, g, inl, xs, sup, sigma):
-    """One pass: residuals ``r``, the gradient ``g``, the inliers, the objective and the
-    relative KKT violation (as ``robust_sindy._certificates.kkt_from_gradient``), and the
-    proximal-gradient support ``sup`` with its signs ``sigma``."""
+def _losses(theta, scale, y, delta, x, r, psi, g, inl, xs):
+    """One pass at ``x``: residuals ``r``, ``psi``, the gradient ``g`` and the inliers;
+    returns the Huber loss and ``||psi||`` (everything that does not depend on ``lam``)."""
     m, p = theta.shape
     for j in range(p):
         xs[j] = x[j] / scale[j]
     r[:] = y - np.dot(theta, xs)  # one BLAS product per pass
-    obj = 0.0
+    loss = 0.0
     psi2 = 0.0
     for i in range(m):
         ri = r[i]
@@ -251,14 +253,24 @@ def _evaluate(theta, scale, y, delta, lam, x, norms, r, psi, g, inl, xs, sup, si
         else:
             ps = ri
         inl[i] = abs(ri) <= delta
-        obj += _huber(ri, delta)
+        loss += _huber(ri, delta)
         psi2 += ps * ps
         psi[i] = ps
     g[:] = np.dot(theta.T, psi)
     for j in range(p):
         g[j] /= scale[j]
+    return loss, np.sqrt(psi2)
+
+
+@_jit
+def _stationarity(lam, x, g, norms, loss, psi_norm, sup, sigma):
+    """From one pass's ``g``, loss and ``||psi||``: the objective at ``lam`` and the
+    relative KKT violation (as ``robust_sindy._certificates.kkt_from_gradient``), and
+    the proximal-gradient support ``sup`` with its signs ``sigma``."""
+    p = x.shape[0]
+    obj = loss
+    for j in range(p):
         obj += lam[j] * abs(x[j])
-    psi_norm = np.sqrt(psi2)
     viol = 0.0
     for j in range(p):
         nrm = norms[j]
@@ -310,34 +322,32 @@ def _trial(theta, scale, r, x, d, lam, delta, xs, q):
 
 
 @_jit
-def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps):
-    """Newton iteration for one column, in place on ``x``; returns (status, steps, passes)."""
+def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps, work, carry):
+    """Newton iteration for one column at one ``lam``, in place on ``x``; returns
+    (status, steps, passes).
+
+    ``work`` holds the column's work arrays (:func:`_work`): residuals, ``psi``,
+    gradient and inliers of the last pass, and the inlier Gram matrix ``M`` with the
+    inlier set it was formed for.  ``carry`` is ``[Gram formed, pass valid, loss,
+    ||psi||]``: on a path the next point starts from this point's solution, whose last
+    pass (residuals, gradient, inliers) and Gram matrix it reuses; a pass is valid when
+    it was taken at the ``x`` the iteration starts from (only the objective and the
+    KKT violation depend on ``lam``).
+    """
+    r, q, psi, weights, g, xs, d, xd, drift, sigma, inl, old, sup, M, rows = work
     m, p = theta.shape
-    r = np.empty(m)
-    q = np.empty(m)
-    g = np.empty(p)
-    xs = np.empty(p)
-    psi = np.empty(m)
-    d = np.empty(p)
-    xd = np.empty(p)
-    inl = np.zeros(m, dtype=np.bool_)
-    old = np.zeros(m, dtype=np.bool_)
-    M = np.empty((p, p))
-    drift = np.zeros(p)
-    have_m = False
-    sup = np.zeros(p, dtype=np.bool_)
-    sigma = np.zeros(p)
     passes = 0
     status = 1
     step = 0
     mu = 0.0
-    weights = np.empty(m)
-    rows = np.arange(m)
     tiny = np.finfo(np.float64).tiny
     ref_viol, ref_step = np.inf, 0
     for step in range(max_steps + 1):
-        obj, viol = _evaluate(theta, scale, y, delta, lam, x, norms, r, psi, g, inl, xs, sup, sigma)
-        passes += 1
+        if step > 0 or carry[1] == 0.0:
+            carry[2], carry[3] = _losses(theta, scale, y, delta, x, r, psi, g, inl, xs)
+            carry[1] = 1.0
+            passes += 1
+        obj, viol = _stationarity(lam, x, g, norms, carry[2], carry[3], sup, sigma)
         if viol <= 0.1 * tol:
             status = 0
             # A partial step leaves rounding-level entries where the optimum has exact
@@ -350,12 +360,13 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
                     xd[j] = 0.0
                     drop = True
             if drop:
-                _, viol2 = _evaluate(
-                    theta, scale, y, delta, lam, xd, norms, r, psi, g, inl, xs, sup, sigma
-                )
+                carry[2], carry[3] = _losses(theta, scale, y, delta, xd, r, psi, g, inl, xs)
+                _, viol2 = _stationarity(lam, xd, g, norms, carry[2], carry[3], sup, sigma)
                 passes += 1
                 if viol2 <= tol:
                     x[:] = xd
+                else:
+                    carry[1] = 0.0  # the last pass was at the rejected point
             break
         if viol < 0.5 * ref_viol:
             ref_viol, ref_step = viol, step
@@ -364,7 +375,7 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
             break
         # Inlier Gram matrix: updated by the rows that changed sides, else afresh.
         updated = False
-        if have_m:
+        if carry[0] != 0.0:
             n_changed = 0
             for i in range(m):
                 if inl[i] != old[i]:
@@ -386,7 +397,7 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
         if not updated:
             _fresh_gram(theta, scale, G, inl, M)
             drift[:] = 0.0
-            have_m = True
+            carry[0] = 1.0
         old[:] = inl
         reweighted = False
         if _support_step(M, g, lam, sigma, sup, x, mu, d):
@@ -437,6 +448,38 @@ def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps)
 
 
 @_jit
+def _work(m, p):
+    """Work arrays of one column (see :func:`_iterate`)."""
+    return (
+        np.empty(m),  # r
+        np.empty(m),  # q
+        np.empty(m),  # psi
+        np.empty(m),  # weights
+        np.empty(p),  # g
+        np.empty(p),  # xs
+        np.empty(p),  # d
+        np.empty(p),  # xd
+        np.zeros(p),  # drift
+        np.zeros(p),  # sigma
+        np.zeros(m, dtype=np.bool_),  # inl
+        np.zeros(m, dtype=np.bool_),  # old
+        np.zeros(p, dtype=np.bool_),  # sup
+        np.empty((p, p)),  # M
+        np.arange(m),  # rows
+    )
+
+
+@_jit
+def _column(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps):
+    """Newton iteration for one column, in place on ``x``; returns (status, steps, passes)."""
+    m, p = theta.shape
+    carry = np.zeros(4)
+    return _iterate(
+        theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps, _work(m, p), carry
+    )
+
+
+@_jit
 def _columns(theta, scale, G, yt, delta, lamt, xt, norms, lipschitz, tol, max_steps, status, steps):
     """Every column in turn; ``yt`` (k, m), ``lamt`` and ``xt`` (k, p): one row each."""
     passes = 0
@@ -450,6 +493,55 @@ def _columns(theta, scale, G, yt, delta, lamt, xt, norms, lipschitz, tol, max_st
         steps[c] = sp
         passes += ps
     return passes
+
+
+@_jit
+def _path_columns(
+    theta, scale, G, yt, delta, lamt, xt, norms, lipschitz, tol, max_steps, first, status, steps,
+    stop, out,
+):  # fmt: skip
+    """Every column in turn along its ``lam`` grid: ``lamt`` (k, L, p), ``xt`` (k, p) the
+    starts at the points ``first`` (k,); the solutions go to ``out`` (k, L, p) until a
+    point the iteration cannot certify (its index in ``stop``, else L)."""
+    m, p = theta.shape
+    L = lamt.shape[1]
+    passes = 0
+    for c in range(yt.shape[0]):
+        x = xt[c].copy()
+        work = _work(m, p)
+        carry = np.zeros(4)
+        stop[c] = L
+        for i in range(first[c], L):
+            st, sp, ps = _iterate(
+                theta, scale, G, yt[c], delta[c], lamt[c, i], x, norms, lipschitz, tol,
+                max_steps, work, carry,
+            )  # fmt: skip
+            passes += ps
+            status[c, i] = st
+            steps[c, i] = sp
+            if st != 0:
+                stop[c] = i
+                break
+            out[c, i] = x
+    return passes
+
+
+def _problem(theta, scale, G, y, delta):
+    """The kernels' problem arrays: the library, its scales and Gram matrix, the targets
+    as rows and the thresholds, all C-contiguous (one compiled specialisation for any
+    number of columns)."""
+    return (
+        np.asarray(theta, dtype=float),
+        np.ascontiguousarray(scale, dtype=float),
+        np.ascontiguousarray(G, dtype=float),
+        np.ascontiguousarray(np.asarray(y, dtype=float).T),
+        np.ascontiguousarray(delta, dtype=float),
+    )
+
+
+def _settings(norms, lipschitz, tol, max_steps):
+    """The kernels' column norms, proximal-gradient constant, tolerance and step budget."""
+    return np.ascontiguousarray(norms, dtype=float), float(lipschitz), float(tol), int(max_steps)
 
 
 def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps):
@@ -471,20 +563,47 @@ def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_
     xt = np.ascontiguousarray(np.asarray(x, dtype=float).T)
     passes = _jit.run(
         "_columns",
-        np.asarray(theta, dtype=float),
-        np.ascontiguousarray(scale, dtype=float),
-        np.ascontiguousarray(G, dtype=float),
-        np.ascontiguousarray(np.asarray(y, dtype=float).T),
-        np.ascontiguousarray(delta, dtype=float),
+        *_problem(theta, scale, G, y, delta),
         np.ascontiguousarray(np.asarray(lam, dtype=float).T),
         xt,
-        np.ascontiguousarray(norms, dtype=float),
-        float(lipschitz),
-        float(tol),
-        int(max_steps),
+        *_settings(norms, lipschitz, tol, max_steps),
         status,
         steps,
     )
     if passes is None:
         return None
     return xt.T.copy(), status, steps, int(passes)
+
+
+def newton_path_kernel(theta, scale, G, y, delta, lam, x, first, norms, lipschitz, tol, max_steps):
+    """Run the compiled Newton iteration along a ``lam`` grid, each point warm-started
+    from the last one's solution, its last pass and its inlier Gram matrix.
+
+    ``lam`` is (L, p, k), ``x`` (p, k) the starts at the points ``first`` (k,); the other
+    arguments as :func:`newton_kernel`.  Returns ``(X, status, steps, stop, passes)``:
+    ``X`` (L, p, k) the solutions, certified at the points ``first[c] <= i < stop[c]``
+    of column ``c``; ``status`` and ``steps`` (L, k) where the iteration ran (the status
+    at ``stop`` is why that point was not certified); or ``None`` where the kernel
+    cannot be compiled.
+    """
+    L, _, k = lam.shape
+    p = x.shape[0]
+    status = np.zeros((k, L), dtype=np.int64)
+    steps = np.zeros((k, L), dtype=np.int64)
+    stop = np.zeros(k, dtype=np.int64)
+    out = np.zeros((k, L, p))
+    passes = _jit.run(
+        "_path_columns",
+        *_problem(theta, scale, G, y, delta),
+        np.ascontiguousarray(np.transpose(np.asarray(lam, dtype=float), (2, 0, 1))),
+        np.ascontiguousarray(np.asarray(x, dtype=float).T),
+        *_settings(norms, lipschitz, tol, max_steps),
+        np.ascontiguousarray(first, dtype=np.int64),
+        status,
+        steps,
+        stop,
+        out,
+    )
+    if passes is None:
+        return None
+    return np.transpose(out, (1, 2, 0)).copy(), status.T.copy(), steps.T.copy(), stop, int(passes)

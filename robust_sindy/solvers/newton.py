@@ -52,7 +52,11 @@ step's NumPy calls cost more than its passes over ``Theta``: there a compiled ve
 of the same iteration (:mod:`robust_sindy.solvers._kernel`, Numba, column by column)
 takes the steps first, 3-5 times faster, and the NumPy iteration solves any column
 it could not certify (singular support blocks, no progress, its step budget) from the
-same start.  ``USE_KERNEL = False`` switches it off.
+same start.  ``USE_KERNEL = False`` switches it off.  Along a ``lam`` path
+(:func:`solve_path`) the compiled iteration walks the whole grid, each point starting
+from the last one's solution with its last pass (residuals, gradient, inliers: only the
+objective and the KKT violation depend on ``lam``) and its inlier Gram matrix, updated
+by the samples that changed sides.
 """
 
 from __future__ import annotations
@@ -74,6 +78,7 @@ __all__ = [
     "prepare",
     "row_direction",
     "solve_newton",
+    "solve_path",
 ]
 
 _EIG_CUT = 1e-11  # relative eigenvalue cut of the Newton systems
@@ -672,6 +677,23 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
 # the fast path
 
 
+def _target_scale(y, delta) -> np.ndarray:
+    """Exact per-column rescaling ``y / c``, ``delta / c``, ``lam / c`` (solution
+    ``xi / c``): ``c`` is max|y| when the Huber threshold is larger (the rms of y for the
+    squared loss), else the geometric mean of the threshold and max|y|, so that neither
+    ``y / c`` nor ``delta / c`` leaves the floating-point range (delta from 1e-300 to
+    1e300 times max|y|)."""
+    n = y.shape[1]
+    ymax = np.max(np.abs(y), axis=0) if y.shape[0] else np.zeros(n)
+    with np.errstate(over="ignore", under="ignore"):
+        c = np.where(
+            np.isfinite(delta),
+            np.where(delta >= ymax, ymax, np.sqrt(delta) * np.sqrt(ymax)),
+            column_norms(y) / np.sqrt(max(y.shape[0], 1)),
+        )
+    return np.where((c > 0) & np.isfinite(c), c, 1.0)
+
+
 def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
     """The fast path: batched Newton on all columns, ADMM for any it cannot certify.
 
@@ -693,18 +715,7 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
     if prepared is None or prepared.equilibrate != equilibrate or prepared.kappa != kappa:
         prepared = prepare(theta, equilibrate=equilibrate, kappa=kappa)
     nz, scale, A = prepared.nz, prepared.scale, prepared.A
-    # Exact per-column rescaling y / c, delta / c, lam / c (solution xi / c): c is max|y|
-    # when the Huber threshold is larger (the rms of y for the squared loss), else the
-    # geometric mean of the threshold and max|y|, so that neither y / c nor delta / c
-    # leaves the floating-point range (delta from 1e-300 to 1e300 times max|y|).
-    ymax = np.max(np.abs(y), axis=0) if y.shape[0] else np.zeros(n)
-    with np.errstate(over="ignore", under="ignore"):
-        c = np.where(
-            np.isfinite(delta),
-            np.where(delta >= ymax, ymax, np.sqrt(delta) * np.sqrt(ymax)),
-            column_norms(y) / np.sqrt(max(y.shape[0], 1)),
-        )
-    c = np.where((c > 0) & np.isfinite(c), c, 1.0)
+    c = _target_scale(y, delta)
     ys, ds = np.divide(y, c, out=np.empty(y.shape, order="F")), delta / c  # column-major
     lam_s = lam[nz] / scale[:, None] / c
     tol = opts["tol"]
@@ -833,3 +844,94 @@ def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **op
             "rho": rho,
         },
     )
+
+
+def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
+    """The fast path along a decreasing ``lam`` grid (L, n), every point warm-started.
+
+    The first point is a :func:`solve_newton` fit; from there the compiled iteration
+    (:func:`robust_sindy.solvers._kernel.newton_path_kernel`) walks each column down its
+    grid, every point starting from the last one's solution, the residuals and gradient
+    of its last pass and its inlier Gram matrix (a warm start is otherwise one pass and
+    one Gram matrix more per point).  A point the kernel cannot certify is solved by
+    :func:`solve_newton` from the previous point (NumPy iteration, then ADMM), and the
+    kernel goes on from there.  Takes the options of :func:`solve_newton` (not
+    ``warm_start``).
+
+    Returns ``(coef, converged, info)``: ``coef`` (L, p, n) in the caller's units,
+    ``converged`` (L, n) the solvers' own verdicts (the caller certifies), ``info``
+    with ``newton_steps`` (L, n), ``passes`` over ``Theta`` and ``handed_over`` (the
+    number of points solved by :func:`solve_newton` after the first); or ``None``
+    where the compiled iteration does not apply (``polish=False``, a problem too large
+    for it, or Numba unavailable): then the caller solves point by point.
+    """
+    from .admm import DEFAULT_OPTIONS
+
+    opts = {**DEFAULT_OPTIONS, **options, "warm_start": None}
+    A = prepared.A
+    L, n = grid.shape
+    if (
+        not opts["polish"]
+        or prepared.equilibrate != opts["equilibrate"]
+        or prepared.kappa != opts["kappa"]
+        or not use_kernel(A, n)
+    ):
+        return None
+    from . import _kernel
+
+    p = theta.shape[1]
+    nz, scale = np.flatnonzero(prepared.nz), prepared.scale
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (n,))
+    coef = np.zeros((L, p, n))
+    converged = np.zeros((L, n), dtype=bool)
+    steps = np.zeros((L, n), dtype=int)
+    out = solve_newton(theta, y, delta, grid[0], prepared=prepared, **opts)
+    coef[0], converged[0], steps[0] = out.coef, out.converged, out.info["newton_steps"]
+    passes, handed_over = out.info["passes"], 0
+    c = _target_scale(y, delta)
+    ys, ds = np.divide(y, c, out=np.empty(y.shape, order="F")), delta / c
+    lam_s = grid[:, None, :] / scale[None, :, None] / c[None, None, :]  # (L, p_nz, n)
+    x = coef[0][nz] * scale[:, None] / c
+    first = np.ones(n, dtype=np.int64)
+    budget = min(FIRST_STEPS * opts["newton_steps"], KERNEL_STEPS)
+    while (first < L).any():
+        cols = np.flatnonzero(first < L)
+        ran = _kernel.newton_path_kernel(
+            A.theta,
+            A.scale,
+            prepared.G,
+            ys[:, cols],
+            ds[cols],
+            lam_s[:, :, cols],
+            x[:, cols],
+            first[cols],
+            prepared.a_norms,
+            prepared.lipschitz,
+            opts["tol"],
+            budget,
+        )
+        if ran is None:
+            return None  # Numba cannot compile here: the caller's point-by-point loop
+        found, _, kernel_steps, stop, kernel_passes = ran
+        passes += kernel_passes
+        for a, k in enumerate(cols):
+            done = np.arange(first[k], stop[a])
+            coef[done[:, None], nz[None, :], k] = found[done, :, a] * (c[k] / scale)[None, :]
+            converged[done, k] = True
+            steps[done, k] = kernel_steps[done, a]
+            if stop[a] == L:
+                first[k] = L
+                continue
+            i = int(stop[a])
+            one = solve_newton(
+                theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared,
+                **{**opts, "warm_start": (coef[i - 1][:, [k]], None)},
+            )  # fmt: skip
+            coef[i, :, k], converged[i, k] = one.coef[:, 0], one.converged[0]
+            steps[i, k] = kernel_steps[i, a] + one.info["newton_steps"][0]
+            passes += one.info["passes"]
+            handed_over += 1
+            x[:, k] = coef[i][nz, k] * scale / c[k]
+            first[k] = i + 1
+    info = {"newton_steps": steps, "passes": passes, "handed_over": handed_over}
+    return coef, converged, info
