@@ -121,6 +121,35 @@ def test_a_walk_hands_the_points_it_cannot_certify_over_and_goes_on(monkeypatch)
     assert rel.max() <= 1e-10
 
 
+def test_a_walk_solves_the_points_it_hands_over_as_cold_fits(monkeypatch):
+    # Screened Lorenz at the automatic delta: at large lam the problem is nearly a
+    # least-absolute-deviation fit, where the walk cannot certify a few points; from
+    # the previous point the NumPy iteration took hundreds of steps on two of them and
+    # handed them to the ADMM, from the least-squares start they are certified at once.
+    from robust_sindy.solvers import _kernel, admm
+    from robust_sindy.solvers import newton as nw
+
+    if not _kernel.usable():
+        pytest.skip("numba is not installed")
+    data = Lorenz().generate()
+    noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(0))
+    theta = Lorenz().fitted_library().transform(noisy.x)
+    y = noisy.x_dot
+    keep = ~screen_rows(theta, y).outliers
+    theta, y = theta[keep], y[keep]
+    walks, admm_runs = [], []
+    original, original_admm = nw.solve_path, admm.solve_admm
+    monkeypatch.setattr(
+        nw, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
+    )
+    monkeypatch.setattr(
+        admm, "solve_admm", lambda *a, **k: admm_runs.append(1) or original_admm(*a, **k)
+    )
+    walked = path(theta, y, auto_delta(theta, y))
+    assert walks[0][2]["handed_over"] > 0 and not admm_runs
+    assert walked.converged.all()
+
+
 def test_path_cold_option_and_cvxpy_agree():
     theta, y = random_problem(3, m=150, p=6, n=1)
     lams = np.geomspace(lambda_max(theta, y, 1.0), 1e-3, 6)

@@ -854,8 +854,8 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
     grid, every point starting from the last one's solution, the residuals and gradient
     of its last pass and its inlier Gram matrix (a warm start is otherwise one pass and
     one Gram matrix more per point).  A point the kernel cannot certify is solved by
-    :func:`solve_newton` from the previous point (NumPy iteration, then ADMM), and the
-    kernel goes on from there.  Takes the options of :func:`solve_newton` (not
+    :func:`solve_newton` as a cold fit (least-squares start; NumPy iteration, then
+    ADMM), and the kernel goes on from there.  Takes the options of :func:`solve_newton` (not
     ``warm_start``).
 
     Returns ``(coef, converged, info)``: ``coef`` (L, p, n) in the caller's units,
@@ -922,11 +922,15 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
             if stop[a] == L:
                 first[k] = L
                 continue
+            # From the least-squares start, as a cold fit: from the previous point, where
+            # the walk failed (a nearly least-absolute-deviation piece), the NumPy
+            # iteration can take hundreds of steps and hand the point to the ADMM (two
+            # such points took 1.07 s of a 1.29 s path on the screened Lorenz problem of
+            # validation/path_cost.py, whose 50 cold fits take 0.44 s).
             i = int(stop[a])
             one = solve_newton(
-                theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared,
-                **{**opts, "warm_start": (coef[i - 1][:, [k]], None)},
-            )  # fmt: skip
+                theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared, **opts
+            )
             coef[i, :, k], converged[i, k] = one.coef[:, 0], one.converged[0]
             steps[i, k] = kernel_steps[i, a] + one.info["newton_steps"][0]
             passes += one.info["passes"]
