@@ -853,15 +853,17 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
     (:func:`robust_sindy.solvers._kernel.newton_path_kernel`) walks each column down its
     grid, every point starting from the last one's solution, the residuals and gradient
     of its last pass and its inlier Gram matrix (a warm start is otherwise one pass and
-    one Gram matrix more per point).  A point the kernel cannot certify is solved by
+    one Gram matrix more per point).  A point the kernel cannot certify is tried again
+    from the previous point with a fresh Gram matrix, else solved by
     :func:`solve_newton` as a cold fit (least-squares start; NumPy iteration, then
     ADMM), and the kernel goes on from there.  Takes the options of :func:`solve_newton` (not
     ``warm_start``).
 
     Returns ``(coef, converged, info)``: ``coef`` (L, p, n) in the caller's units,
     ``converged`` (L, n) the solvers' own verdicts (the caller certifies), ``info``
-    with ``newton_steps`` (L, n), ``passes`` over ``Theta`` and ``handed_over`` (the
-    number of points solved by :func:`solve_newton` after the first); or ``None``
+    with ``newton_steps`` (L, n), ``passes`` over ``Theta``, ``retried`` (points the
+    kernel certified once more from the previous point) and ``handed_over`` (points
+    solved by :func:`solve_newton` after the first); or ``None``
     where the compiled iteration does not apply (``polish=False``, a problem too large
     for it, or Numba unavailable): then the caller solves point by point.
     """
@@ -887,7 +889,7 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
     steps = np.zeros((L, n), dtype=int)
     out = solve_newton(theta, y, delta, grid[0], prepared=prepared, **opts)
     coef[0], converged[0], steps[0] = out.coef, out.converged, out.info["newton_steps"]
-    passes, handed_over = out.info["passes"], 0
+    passes, handed_over, retried = out.info["passes"], 0, 0
     c = _target_scale(y, delta)
     ys, ds = np.divide(y, c, out=np.empty(y.shape, order="F")), delta / c
     lam_s = grid[:, None, :] / scale[None, :, None] / c[None, None, :]  # (L, p_nz, n)
@@ -922,12 +924,28 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
             if stop[a] == L:
                 first[k] = L
                 continue
-            # From the least-squares start, as a cold fit: from the previous point, where
-            # the walk failed (a nearly least-absolute-deviation piece), the NumPy
-            # iteration can take hundreds of steps and hand the point to the ADMM (two
-            # such points took 1.07 s of a 1.29 s path on the screened Lorenz problem of
-            # validation/path_cost.py, whose 50 cold fits take 0.44 s).
+            # Once more from the previous point with a fresh Gram matrix (the walk's
+            # updated one can lead a hard point astray), then as a cold fit
+            # (least-squares start): from the previous point the NumPy iteration can
+            # take hundreds of steps on a nearly least-absolute-deviation piece and hand
+            # the point to the ADMM (two such points took 1.07 s of a 1.29 s path on the
+            # screened Lorenz problem of validation/path_cost.py, whose 50 cold fits take
+            # 0.44 s).
             i = int(stop[a])
+            again = _kernel.newton_kernel(
+                A.theta, A.scale, prepared.G, ys[:, [k]], ds[[k]], lam_s[i][:, [k]],
+                coef[i - 1][nz, k][:, None] * (scale / c[k])[:, None], prepared.a_norms,
+                prepared.lipschitz, opts["tol"], budget,
+            )  # fmt: skip
+            passes += 0 if again is None else again[3]
+            if again is not None and again[1][0] == 0:
+                coef[i, nz, k] = again[0][:, 0] * c[k] / scale
+                converged[i, k] = True
+                steps[i, k] = kernel_steps[i, a] + again[2][0]
+                x[:, k] = again[0][:, 0]
+                first[k] = i + 1
+                retried += 1
+                continue
             one = solve_newton(
                 theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared, **opts
             )
@@ -937,5 +955,10 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
             handed_over += 1
             x[:, k] = coef[i][nz, k] * scale / c[k]
             first[k] = i + 1
-    info = {"newton_steps": steps, "passes": passes, "handed_over": handed_over}
+    info = {
+        "newton_steps": steps,
+        "passes": passes,
+        "retried": retried,
+        "handed_over": handed_over,
+    }
     return coef, converged, info
