@@ -21,8 +21,8 @@ import numpy as np
 import scipy.integrate
 from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import NotFittedError
-from threadpoolctl import threadpool_limits
 
+from ._blas import one_thread
 from ._fit import METHODS, fit
 from ._scaling import Standardizer
 from ._validation import as_float_array, per_column
@@ -840,7 +840,7 @@ class HuberSINDy(BaseEstimator):
             feature_names = frame_names
         xs, ts, ds, us = self._trajectories(x, t, x_dot, u, need_t=False)
         if sum(a.shape[0] for a in xs) <= SMALL_PROBLEM_SAMPLES:
-            with threadpool_limits(limits=1, user_api="blas"):
+            with one_thread():
                 return self._fit(xs, ts, ds, us, feature_names)
         return self._fit(xs, ts, ds, us, feature_names)
 

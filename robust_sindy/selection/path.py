@@ -205,25 +205,27 @@ def path(
         walked = None
         if warm_start:
             walked = newton.solve_path(theta, y, delta_k, grid, prepared=prepared, **opts)
+
+        def accepted(solved, kkt, rel_gap):  # the solver's verdict and the certificate's
+            return solved & ((kkt <= opts["tol"]) | (rel_gap <= opts["gap_tol"]))
+
         if walked is not None:
-            coef[:], solved = walked[0], walked[1]
-            certified = _certify_points(theta, y, coef, delta_k, grid, col_norms, progress)
-            obj[:], kkt[:], rel_gap = certified
-            conv[:] = solved & ((kkt <= opts["tol"]) | (rel_gap <= opts["gap_tol"]))
-        previous = None
-        for i in tqdm(
-            range(L if walked is None else 0), desc="lam path", disable=not progress, leave=False
-        ):
-            out = newton.solve_newton(
-                theta, y, delta_k, grid[i], warm_start=previous, prepared=prepared, **opts
+            coef[:] = walked[0]
+            obj[:], kkt[:], rel_gap = _certify_points(
+                theta, y, coef, delta_k, grid, col_norms, progress
             )
-            cert = certify(theta, y, out.coef, delta_k, grid[i][None, :], col_norms)
-            coef[i], obj[i], kkt[i] = out.coef, cert.objective, cert.kkt
-            conv[i] = out.converged & (
-                (cert.kkt <= opts["tol"]) | (cert.rel_gap <= opts["gap_tol"])
-            )
-            if warm_start:
-                previous = (out.coef, cert.psi)
+            conv[:] = accepted(walked[1], kkt, rel_gap)
+        else:
+            previous = None
+            for i in tqdm(range(L), desc="lam path", disable=not progress, leave=False):
+                out = newton.solve_newton(
+                    theta, y, delta_k, grid[i], warm_start=previous, prepared=prepared, **opts
+                )
+                cert = certify(theta, y, out.coef, delta_k, grid[i][None, :], col_norms)
+                coef[i], obj[i], kkt[i] = out.coef, cert.objective, cert.kkt
+                conv[i] = accepted(out.converged, cert.kkt, cert.rel_gap)
+                if warm_start:
+                    previous = (out.coef, cert.psi)
     else:
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)

@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from .._blas import one_thread
 from .._compiled import AVAILABLE, Kernels
 from .newton import _ARMIJO, _DIRECT_GRAM, _DRIFT, _LM, _MAX_STEP, _UPDATE_ROWS
 
@@ -526,23 +527,6 @@ def _path_columns(
     return passes
 
 
-_CONTROLLER = None
-
-
-def _one_blas_thread():
-    """BLAS on one thread while a kernel runs: its products are small (the support
-    block, the rows that changed sides, one pass over an m x p library with m p k at
-    most :data:`~robust_sindy.solvers.newton.KERNEL_WORK`), and starting threads costs
-    more than they save (a fit at m = 1e3, p = 35: 8.0 ms with two threads, 2.8 ms with
-    one).  The controller is made once (about 10 microseconds a call after that)."""
-    global _CONTROLLER
-    if _CONTROLLER is None:
-        from threadpoolctl import ThreadpoolController
-
-        _CONTROLLER = ThreadpoolController()
-    return _CONTROLLER.limit(limits=1, user_api="blas")
-
-
 def _problem(theta, scale, G, y, delta):
     """The kernels' problem arrays: the library, its scales and Gram matrix, the targets
     as rows and the thresholds, all C-contiguous (one compiled specialisation for any
@@ -578,7 +562,7 @@ def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_
     # Every array C-contiguous (the columns as rows), whatever the number of columns:
     # every call uses the one compiled specialisation.
     xt = np.ascontiguousarray(np.asarray(x, dtype=float).T)
-    with _one_blas_thread():
+    with one_thread():  # small products: BLAS threads cost more than they save
         passes = _jit.run(
             "_columns",
             *_problem(theta, scale, G, y, delta),
@@ -610,7 +594,7 @@ def newton_path_kernel(theta, scale, G, y, delta, lam, x, first, norms, lipschit
     steps = np.zeros((k, L), dtype=np.int64)
     stop = np.zeros(k, dtype=np.int64)
     out = np.zeros((k, L, p))
-    with _one_blas_thread():
+    with one_thread():  # small products: BLAS threads cost more than they save
         passes = _jit.run(
             "_path_columns",
             *_problem(theta, scale, G, y, delta),

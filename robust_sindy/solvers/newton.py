@@ -937,15 +937,17 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
                 coef[i - 1][nz, k][:, None] * (scale / c[k])[:, None], prepared.a_norms,
                 prepared.lipschitz, opts["tol"], budget,
             )  # fmt: skip
-            passes += 0 if again is None else again[3]
-            if again is not None and again[1][0] == 0:
-                coef[i, nz, k] = again[0][:, 0] * c[k] / scale
-                converged[i, k] = True
-                steps[i, k] = kernel_steps[i, a] + again[2][0]
-                x[:, k] = again[0][:, 0]
-                first[k] = i + 1
-                retried += 1
-                continue
+            if again is not None:
+                x_again, status_again, steps_again, passes_again = again
+                passes += passes_again
+                if status_again[0] == 0:
+                    coef[i, nz, k] = x_again[:, 0] * c[k] / scale
+                    converged[i, k] = True
+                    steps[i, k] = kernel_steps[i, a] + steps_again[0]
+                    x[:, k] = x_again[:, 0]
+                    first[k] = i + 1
+                    retried += 1
+                    continue
             one = solve_newton(
                 theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared, **opts
             )
