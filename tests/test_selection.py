@@ -21,6 +21,7 @@ from robust_sindy.selection import (
 from robust_sindy.simulate import rk4
 from robust_sindy.systems import Drone, Lorenz
 
+from ._trajectories import rk4_trajectory
 from .conftest import random_problem
 
 
@@ -278,7 +279,7 @@ def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():
     system = {s.name: s for s in zoo.polynomial_systems()}["KawczynskiStrizhak"]
     params = zoo.Contamination(base_noise=2e-3, spikes_fraction=0.02, spikes_range=(3.0, 5.0))
     rng = np.random.default_rng([6, zoo.FAMILIES.index("spikes"), 0])
-    t, x, x_dot = zoo.simulate_system(system, 800, 6)
+    t, x, x_dot = rk4_trajectory(system, 800, 1086)
     noisy, bad = zoo.contaminate_family(x, "spikes", rng, params)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -487,7 +488,7 @@ def test_a_fast_excursion_the_temporal_screen_cannot_follow_is_kept():
     from robust_sindy import zoo
 
     system = {s.name: s for s in zoo.polynomial_systems()}["AtmosphericRegime"]
-    t, x, x_dot = zoo.simulate_system(system, 2000, 3)
+    t, x, x_dot = rk4_trajectory(system, 2000, 1857)
     clean = dataclasses.replace(zoo.ZOO_CONTAMINATION, base_noise=2e-3)
     noisy, _ = zoo.contaminate_family(x, "clean", np.random.default_rng(0), clean)
     model = HuberSINDy(library=PolynomialLibrary(degree=system.degree))

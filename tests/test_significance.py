@@ -11,6 +11,8 @@ from hypothesis import strategies as st
 from robust_sindy import HuberSINDy, PolynomialLibrary, fit
 from robust_sindy.selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t
 
+from ._trajectories import rk4_trajectory
+
 
 def _regression(seed, m=600, ar=0.0, scale=0.5):
     rng = np.random.default_rng(seed)
@@ -177,19 +179,6 @@ def test_with_estimated_derivatives_the_bar_is_higher():
             assert "within 10 standard errors" in messages[0] and "estimated" in messages[0]
 
 
-def _trajectory(system, n_samples, burn):
-    """States and exact derivatives of a zoo system sampled at its time step, integrated
-    by RK4 (four steps per sample) after ``burn`` samples from its initial state: fixed
-    arithmetic, so the data are the same in every environment (the zoo's adaptive
-    integration of a chaotic system, run for tens of Lyapunov times, is not: its
-    trajectories differ between builds of SciPy and NumPy)."""
-    from robust_sindy.simulate import rk4
-
-    t = system.dt * np.arange(burn + n_samples)
-    x = rk4(lambda _t, v, _u: system.rhs(v[None, :])[0], system.ic, t, substeps=4)[burn:]
-    return t[:n_samples], x, system.rhs(x)
-
-
 def _zoo_states(name, family, subsets=True, burn=900):
     """A zoo system under one of the zoo's contamination families (seed 0), states only
     (``subsets``: whether the criterion sees the best-subset candidates), differentiated
@@ -201,7 +190,7 @@ def _zoo_states(name, family, subsets=True, burn=900):
 
     system = {s.name: s for s in zoo.polynomial_systems()}[name]
     rng = np.random.default_rng([0, zoo.FAMILIES.index(family), 1])
-    t, x, _ = _trajectory(system, 2000, burn)
+    t, x, _ = rk4_trajectory(system, 2000, burn)
     noisy, _ = zoo.contaminate_family(x, family, rng)
     select = functools.partial(robust_sindy.model.select, subsets=subsets)
     with warnings.catch_warnings(record=True) as caught, pytest.MonkeyPatch.context() as mp:
@@ -261,7 +250,7 @@ def test_measured_derivatives_drop_the_terms_the_data_do_not_vouch_for():
     system = {s.name: s for s in zoo.polynomial_systems()}["Chen"]
     params = zoo.Contamination(heavy_dof=3.0, heavy_scale=0.005)
     rng = np.random.default_rng([5, zoo.FAMILIES.index("heavy"), 0])
-    t, x, x_dot = _trajectory(system, 2000, 600)
+    t, x, x_dot = rk4_trajectory(system, 2000, 600)
     noisy, _ = zoo.contaminate_family(x, "heavy", rng, params)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
