@@ -11,6 +11,7 @@ in a fresh installation compiles (seconds), later processes load the cache.
 from __future__ import annotations
 
 import importlib.util
+import threading
 import warnings
 
 __all__ = ["AVAILABLE", "Kernels"]
@@ -26,6 +27,7 @@ class Kernels:
         self._namespace = namespace
         self._names: list[str] = []
         self._ready = False
+        self._lock = threading.Lock()  # kernels may be first called from several threads
         #: Why the kernels cannot be used (set on a failure to compile), else None.
         self.broken: str | None = None if AVAILABLE else "numba is not installed"
 
@@ -41,11 +43,14 @@ class Kernels:
         """Replace the marked functions by their compiled versions (once)."""
         if self._ready:
             return
-        import numba
+        with self._lock:
+            if self._ready:
+                return
+            import numba
 
-        for name in self._names:
-            self._namespace[name] = numba.njit(cache=True, nogil=True)(self._namespace[name])
-        self._ready = True
+            for name in self._names:
+                self._namespace[name] = numba.njit(cache=True, nogil=True)(self._namespace[name])
+            self._ready = True
 
     def run(self, name: str, *args):
         """Call the kernel ``name``; ``None`` if Numba cannot compile it here (a Numba

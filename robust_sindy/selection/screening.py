@@ -19,6 +19,8 @@
   outlier.
 
 All scales are robust scales of the data themselves, so every decision is unit-free.
+The components' local fits are independent and run side by side on the machine's cores
+(:func:`robust_sindy._threads.map_threads`).
 """
 
 from __future__ import annotations
@@ -32,6 +34,7 @@ import scipy.ndimage
 
 from .._fit import ConvergenceWarning, fit
 from .._scaling import robust_scale
+from .._threads import map_threads
 from .._validation import as_float_array, check_int, check_positive, check_problem
 from . import _temporal_kernels
 from .bias import carried_noise, residual_noise_factor
@@ -250,10 +253,13 @@ def _errors(x, t, flags, h, degree):
     neighbours of every sample (per component)."""
     pred = np.empty_like(x)
     err = np.empty_like(x)
-    for k in range(x.shape[1]):
+
+    def component(k):
         nb = _clean_neighbours(flags[:, k], h)
         pred[:, k], factor = _loo_predict(x[:, k], t, nb, degree)
         err[:, k] = (x[:, k] - pred[:, k]) / factor
+
+    map_threads(component, range(x.shape[1]))
     return err, pred
 
 
@@ -461,7 +467,7 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
     if x.shape[0] > 2 * _LTS_HALF + 1:
         # 1. Candidates: gross errors from a local high-breakdown fit, which gross
         #    errors in the window (up to a third of it) cannot pull towards themselves.
-        lts = np.column_stack([_lts_fitted(x[:, k], t) for k in range(x.shape[1])])
+        lts = np.column_stack(map_threads(lambda k: _lts_fitted(x[:, k], t), range(x.shape[1])))
         candidates = gross(x - lts) > 1
         # 2. Confirmation by leave-one-out least squares from the nearest samples that
         #    are not candidates (no entry is added here: a clean sample next to a gap of

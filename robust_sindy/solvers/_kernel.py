@@ -11,7 +11,9 @@ objective; also past the full step of a damped or reweighted direction whose slo
 still negative there: on near-least-absolute-deviation pieces such a step can be orders
 of magnitude too short), with the NumPy iteration's Levenberg-Marquardt rule and its
 proximal-gradient step where the direction is no descent direction.  The passes over
-the library are BLAS products.  At ``m = 1000`` a step costs tens of microseconds
+the library are BLAS products (on one thread); the columns, independent, run side by side
+on the machine's cores (:func:`robust_sindy._threads.map_threads`), each computed as it
+would be alone.  At ``m = 1000`` a step costs tens of microseconds
 instead of the ~0.5 ms of NumPy calls.  Along a ``lam`` grid (:func:`newton_path_kernel`)
 each point starts from the last one's solution and reuses its last pass and its inlier
 Gram matrix: a warm point no longer pays one pass and one Gram matrix before its first
@@ -45,6 +47,7 @@ import numpy as np
 
 from .._blas import one_thread
 from .._compiled import AVAILABLE, Kernels
+from .._threads import map_threads
 from .newton import _ARMIJO, _DIRECT_GRAM, _DRIFT, _LM, _MAX_STEP, _UPDATE_ROWS
 
 __all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel", "newton_path_kernel", "usable"]
@@ -562,19 +565,22 @@ def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_
     # Every array C-contiguous (the columns as rows), whatever the number of columns:
     # every call uses the one compiled specialisation.
     xt = np.ascontiguousarray(np.asarray(x, dtype=float).T)
+    theta, scale, G, yt, delta = _problem(theta, scale, G, y, delta)
+    lamt = np.ascontiguousarray(np.asarray(lam, dtype=float).T)
+    settings = _settings(norms, lipschitz, tol, max_steps)
+
+    def run(c):  # one column (a row of each array: a C-contiguous view)
+        s = slice(c, c + 1)
+        return _jit.run(
+            "_columns", theta, scale, G, yt[s], delta[s], lamt[s], xt[s], *settings,
+            status[s], steps[s],
+        )  # fmt: skip
+
     with one_thread():  # small products: BLAS threads cost more than they save
-        passes = _jit.run(
-            "_columns",
-            *_problem(theta, scale, G, y, delta),
-            np.ascontiguousarray(np.asarray(lam, dtype=float).T),
-            xt,
-            *_settings(norms, lipschitz, tol, max_steps),
-            status,
-            steps,
-        )
-    if passes is None:
+        passes = map_threads(run, range(k))
+    if any(p is None for p in passes):
         return None
-    return xt.T.copy(), status, steps, int(passes)
+    return xt.T.copy(), status, steps, int(sum(passes))
 
 
 def newton_path_kernel(theta, scale, G, y, delta, lam, x, first, norms, lipschitz, tol, max_steps):
@@ -594,19 +600,24 @@ def newton_path_kernel(theta, scale, G, y, delta, lam, x, first, norms, lipschit
     steps = np.zeros((k, L), dtype=np.int64)
     stop = np.zeros(k, dtype=np.int64)
     out = np.zeros((k, L, p))
+    theta, scale, G, yt, delta = _problem(theta, scale, G, y, delta)
+    lamt = np.ascontiguousarray(np.transpose(np.asarray(lam, dtype=float), (2, 0, 1)))
+    xt = np.ascontiguousarray(np.asarray(x, dtype=float).T)
+    settings = _settings(norms, lipschitz, tol, max_steps)
+    first = np.ascontiguousarray(first, dtype=np.int64)
+
+    def run(c):  # one column (a row of each array: a C-contiguous view)
+        s = slice(c, c + 1)
+        return _jit.run(
+            "_path_columns", theta, scale, G, yt[s], delta[s], lamt[s], xt[s], *settings,
+            first[s], status[s], steps[s], stop[s], out[s],
+        )  # fmt: skip
+
     with one_thread():  # small products: BLAS threads cost more than they save
-        passes = _jit.run(
-            "_path_columns",
-            *_problem(theta, scale, G, y, delta),
-            np.ascontiguousarray(np.transpose(np.asarray(lam, dtype=float), (2, 0, 1))),
-            np.ascontiguousarray(np.asarray(x, dtype=float).T),
-            *_settings(norms, lipschitz, tol, max_steps),
-            np.ascontiguousarray(first, dtype=np.int64),
-            status,
-            steps,
-            stop,
-            out,
-        )
-    if passes is None:
+        passes = map_threads(run, range(k))
+    if any(p is None for p in passes):
         return None
-    return np.transpose(out, (1, 2, 0)).copy(), status.T.copy(), steps.T.copy(), stop, int(passes)
+    return (
+        np.transpose(out, (1, 2, 0)).copy(), status.T.copy(), steps.T.copy(), stop,
+        int(sum(passes)),
+    )  # fmt: skip

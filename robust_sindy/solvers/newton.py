@@ -49,7 +49,8 @@ needs a cut, a singular value decomposition of the weighted rows on the support
 On small problems (``m p k`` up to :data:`KERNEL_WORK`, e.g. a thousand samples of a
 library of 35 terms and three targets, and every fit along a path at that size) a
 step's NumPy calls cost more than its passes over ``Theta``: there a compiled version
-of the same iteration (:mod:`robust_sindy.solvers._kernel`, Numba, column by column)
+of the same iteration (:mod:`robust_sindy.solvers._kernel`, Numba, column by column,
+the columns side by side on the machine's cores: :mod:`robust_sindy._threads`)
 takes the steps first, 3-5 times faster, and the NumPy iteration solves any column
 it could not certify (singular support blocks, no progress, its step budget) from the
 same start.  ``USE_KERNEL = False`` switches it off.  Along a ``lam`` path
