@@ -291,11 +291,17 @@ def run(
     return [r for _, block in blocks for r in block]
 
 
+_KERNELS_LOADED = False
+
+
 def load_kernels() -> None:
     """Compile (in a fresh installation, tens of seconds) or load from the disk cache the
-    compiled kernels, by one small identification, so that no timed or memory-traced run
-    pays for it: under ``tracemalloc`` a first compilation took 34 s, which
-    :func:`time_solver` would have taken for the solver's time."""
+    compiled kernels, by one small identification, once per process, so that no timed
+    or memory-traced run pays for it: under ``tracemalloc`` a first compilation took
+    34 s, which :func:`time_solver` would have taken for the solver's time."""
+    global _KERNELS_LOADED
+    if _KERNELS_LOADED:
+        return
     from .model import HuberSINDy
 
     t, x, x_dot = bench_data(300)
@@ -303,6 +309,7 @@ def load_kernels() -> None:
         warnings.simplefilter("ignore")
         HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t, x_dot=x_dot)
         HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t)
+    _KERNELS_LOADED = True
 
 
 def _chain(problems, solvers, repeats, skip_after, bar=None) -> list[tuple[int, list]]:
