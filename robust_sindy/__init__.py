@@ -9,9 +9,9 @@ reference; least-squares baselines
 (STLS, OLS) and the Lasso (``loss="squared"``) use the same entry point, :func:`fit`.
 """
 
+from ._version import __version__
 from . import (
     datasets,
-    differentiation,
     export,
     library,
     metrics,
@@ -22,18 +22,19 @@ from . import (
     simulate,
     systems,
 )
-from ._certificates import duality_gap, kkt_violation, objective
-from ._fit import METHODS, ConvergenceWarning, FitResult, fit
-from ._losses import huber, huber_prox, huber_psi, soft_threshold
+from .core.certificates import duality_gap, kkt_violation, objective
+from .fitting import METHODS, ConvergenceWarning, FitResult, fit
+from .core.losses import huber, huber_prox, huber_psi, soft_threshold
 from .ensemble import EnsembleSINDy
-from .io import load_model
 from .library import ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
-from .model import Diagnostics, HuberSINDy, IdentificationWarning
-from .solvers.admm import PAPER_OPTIONS as PAPER_ADMM_OPTIONS
+from .diagnostics import Diagnostics, IdentificationWarning
+from .estimator import HuberSINDy, load_model
+from .solvers.problem import PAPER_OPTIONS as PAPER_ADMM_OPTIONS
+from .timeseries import differentiation
 
-__version__ = "0.1.0"
 
 __all__ = [
+    "__version__",
     "METHODS",
     "PAPER_ADMM_OPTIONS",
     "ConcatLibrary",

@@ -33,11 +33,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ._certificates import kkt_violation, objective
-from ._fit import ConvergenceWarning, fit
+from .core.certificates import kkt_violation, objective
+from .fitting import ConvergenceWarning, fit
 from .library import PolynomialLibrary
 from .noise import contaminate
-from .solvers.admm import PAPER_OPTIONS
+from .solvers.problem import PAPER_OPTIONS
 from .systems import Lorenz
 
 __all__ = ["SOLVERS", "BenchRow", "bench_problem", "run", "time_solver"]
@@ -302,7 +302,7 @@ def load_kernels() -> None:
     global _KERNELS_LOADED
     if _KERNELS_LOADED:
         return
-    from .model import HuberSINDy
+    from .estimator import HuberSINDy
 
     t, x, x_dot = bench_data(300)
     with warnings.catch_warnings():
@@ -412,7 +412,7 @@ class PipelineRow:
 def _identify(name: str, t, x, x_dot) -> np.ndarray:
     """Coefficients (n, p) of one identification method, degree-2 monomials."""
     if name == "HuberSINDy()":
-        from .model import HuberSINDy
+        from .estimator import HuberSINDy
 
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")  # diagnostics are not timed differently

@@ -22,18 +22,14 @@ import numpy as np
 from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import NotFittedError
 
-from ._validation import check_int
+from .core.validation import check_int
 from .export import ExportedRHS
 from .library import BaseLibrary, PolynomialLibrary
-from .model import (
-    HuberSINDy,
-    IdentificationWarning,
-    _from_frames,
-    _pairs,
-    input_names,
-    integrate,
-    simulation_inputs,
-)
+from .diagnostics import IdentificationWarning
+from .estimator import HuberSINDy
+from .simulate import integrate, simulation_inputs
+from .timeseries.derivatives import differentiate
+from .timeseries.trajectories import Trajectories
 
 __all__ = ["UNCERTAIN_BAND", "DroppedTerms", "EnsembleSINDy"]
 
@@ -227,25 +223,26 @@ class EnsembleSINDy(BaseEstimator):
 
         self._check_params()
         base = clone(self.estimator) if self.estimator is not None else HuberSINDy()
-        base._check_params()
-        x, t, x_dot, u, frame_names = _from_frames(x, t, x_dot, u)
-        names = feature_names if feature_names is not None else frame_names
-        xs, ts, ds, us = base._trajectories(x, t, x_dot, u, need_t=self.sampling == "blocks")
+        base.check_params()
+        data = Trajectories.from_user(
+            x, t, x_dot, u, feature_names, need_t=self.sampling == "blocks"
+        )
+        xs, ts, ds, us = data.x, data.t, data.x_dot, data.u
         # The full library: the coordinates of every model's coefficients.
-        n, q = xs[0].shape[1], 0 if us is None else us[0].shape[1]
-        names = input_names(names, n, q)
+        n, q = data.n_states, data.n_controls
+        names = data.feature_names()
         template = base.library if base.library is not None else PolynomialLibrary()
         self.library_ = clone(template).fit(np.zeros((1, n + q)), input_names=names)
         if self.sampling == "rows" and ds is None:
             # Once for all models, as a single fit computes them (windows guarded by
             # the library).
-            ts = base._times(t, xs, isinstance(x, (list, tuple)))
             ds = [
-                base._differentiate(
-                    a, ti, library=self.library_.transform(a if b is None else np.hstack([a, b]))
+                differentiate(
+                    a, ti, base.differentiation, base.derivative_window,
+                    library=self.library_.transform(a if b is None else np.hstack([a, b])),
                 )
-                for (a, b), ti in zip(_pairs(xs, us), ts, strict=True)
-            ]
+                for (a, b), ti in zip(data.pairs(), ts, strict=True)
+            ]  # fmt: skip
         self.feature_names_ = names
         self.n_control_features_ = q
         p = self.library_.n_output_features_

@@ -291,7 +291,7 @@ def run(
     samples the screen left out marked) and ``coefficients.png``.  Raises
     :class:`InputError` for bad data or arguments.  Returns the written paths.
     """
-    from .model import HuberSINDy
+    from .estimator import HuberSINDy
 
     frame = read_table(data)
     job = FitJob.from_table(

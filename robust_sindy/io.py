@@ -14,13 +14,17 @@ from __future__ import annotations
 
 import dataclasses
 import json
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+from sklearn.exceptions import NotFittedError
+
+from ._version import __version__
 
 from .library import BaseLibrary, ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 
-__all__ = ["FORMAT", "FORMAT_VERSION", "load_model", "save_model"]
+__all__ = ["FORMAT", "FORMAT_VERSION", "SavedModel", "read_model", "save_model"]
 
 FORMAT = "robust-sindy model"
 FORMAT_VERSION = 1
@@ -107,9 +111,8 @@ def _fields(obj) -> dict:
 
 def save_model(model, path) -> Path:
     """Write a fitted :class:`~robust_sindy.HuberSINDy` to ``path`` as JSON; returns the path."""
-    from . import __version__
-
-    model._check_fitted("save")
+    if not hasattr(model, "coef_"):
+        raise NotFittedError("this model is not fitted yet: call fit before save")
     params = {
         k: _plain(v)
         for k, v in model.get_params(deep=False).items()
@@ -142,14 +145,19 @@ def save_model(model, path) -> Path:
     return path
 
 
-def load_model(path):
-    """Read a model file written by :func:`save_model` (or ``HuberSINDy.save``).
+@dataclass(frozen=True)
+class SavedModel:
+    """What a model file holds: the estimator's parameters, its (unfitted) library, and
+    the fitted attributes to set (``library_``, ``coef_``, ``delta_``, ...)."""
 
-    The returned :class:`~robust_sindy.HuberSINDy` predicts, prints and simulates like
-    the saved one; its diagnostics are the dict ``diagnostics_summary_``.
-    """
-    from .model import HuberSINDy
+    params: dict
+    library: BaseLibrary
+    fitted: dict
 
+
+def read_model(path) -> SavedModel:
+    """Read and check a model file written by :func:`save_model`
+    (:func:`robust_sindy.load_model` builds the estimator from it)."""
     path = Path(path)
     try:
         data = json.loads(path.read_text())
@@ -164,18 +172,21 @@ def load_model(path):
             f"up to {FORMAT_VERSION}: upgrade robust_sindy to load it"
         )
     spec = data["library"]
-    model = HuberSINDy(library=library_from_spec(spec), **data["params"])
     inputs = data["input_names"]
-    model.library_ = library_from_spec(spec).fit(np.zeros((1, len(inputs))), input_names=inputs)
-    if model.library_.get_feature_names() != data["terms"]:
+    library = library_from_spec(spec).fit(np.zeros((1, len(inputs))), input_names=inputs)
+    if library.get_feature_names() != data["terms"]:
         raise ValueError(f"{str(path)!r}: the library does not rebuild the saved terms")
-    model.feature_names_ = list(data["feature_names"])
-    model.n_control_features_ = int(data["n_control_features"])
-    model.coef_ = _array(data["coef"])
-    model.support_ = model.coef_ != 0
-    model.delta_ = _array(data["delta"])
-    model.lam_ = _array(data["lam"])
+    coef = _array(data["coef"])
+    fitted = {
+        "library_": library,
+        "feature_names_": list(data["feature_names"]),
+        "n_control_features_": int(data["n_control_features"]),
+        "coef_": coef,
+        "support_": coef != 0,
+        "delta_": _array(data["delta"]),
+        "lam_": _array(data["lam"]),
+        "diagnostics_summary_": data.get("diagnostics"),
+    }
     if data.get("selection_tol") is not None:
-        model.selection_tol_ = float(data["selection_tol"])
-    model.diagnostics_summary_ = data.get("diagnostics")
-    return model
+        fitted["selection_tol_"] = float(data["selection_tol"])
+    return SavedModel(data["params"], library_from_spec(spec), fitted)

@@ -30,7 +30,7 @@ import numpy as np
 from sklearn.base import BaseEstimator, TransformerMixin, clone
 from sklearn.utils import check_array
 
-from ._validation import check_int
+from .core.validation import check_int
 
 __all__ = [
     "FUNCTIONS",

@@ -17,7 +17,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validation import as_float_array
+from .core.validation import as_float_array
 
 __all__ = ["SupportScores", "iae", "max_abs_error", "support_scores"]
 

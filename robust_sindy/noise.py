@@ -22,7 +22,7 @@ from typing import NamedTuple
 
 import numpy as np
 
-from ._validation import as_float_array, check_positive
+from .core.validation import as_float_array, check_positive
 
 __all__ = ["PLACEMENTS", "Contaminated", "contaminate", "outlier_rows"]
 

@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._fit import fit
-from ._scaling import Standardizer
+from .fitting import fit
+from .core.scaling import Standardizer
 
 try:
     from pysindy.optimizers import BaseOptimizer

@@ -27,11 +27,11 @@ from pathlib import Path
 
 import numpy as np
 
-from ._fit import ConvergenceWarning, fit
+from .fitting import ConvergenceWarning, fit
 from .metrics import iae, support_scores
-from .model import HuberSINDy
+from .estimator import HuberSINDy
 from .noise import contaminate
-from .solvers.admm import PAPER_OPTIONS
+from .solvers.problem import PAPER_OPTIONS
 from .systems import Drone, Lorenz
 
 __all__ = ["METHOD_NAMES", "PAPER", "SYSTEMS", "run_seed", "summarise"]

@@ -14,20 +14,11 @@ from __future__ import annotations
 from collections.abc import Callable
 
 import numpy as np
+import scipy.integrate
 
-from ._validation import as_float_array
+from .core.validation import as_float_array, check_time
 
-__all__ = ["check_time", "input_function", "rk4"]
-
-
-def check_time(t, name: str = "t", *, min_length: int = 2) -> np.ndarray:
-    """Return ``t`` as a strictly increasing 1-D float array, or raise naming ``name``."""
-    t = as_float_array(t, name, (1,))
-    if t.size < min_length:
-        raise ValueError(f"{name} must hold at least {min_length} time points; got {t.size}")
-    if np.any(np.diff(t) <= 0):
-        raise ValueError(f"{name} must be strictly increasing")
-    return t
+__all__ = ["input_function", "integrate", "rk4", "simulation_inputs"]
 
 
 def input_function(u, t: np.ndarray, name: str = "u") -> Callable[[float], np.ndarray] | None:
@@ -99,3 +90,35 @@ def rk4(
             s = s + h
         out[k + 1] = x
     return out
+
+
+def simulation_inputs(x0, t, u, n: int, q: int):
+    """``t``, ``x0`` and the input function of a simulation of ``n`` states and ``q``
+    controls, checked (``u`` as :func:`robust_sindy.simulate.input_function` takes it)."""
+    t = check_time(t, "t")
+    x0 = as_float_array(x0, "x0", (1,))
+    if x0.size != n:
+        raise ValueError(f"x0 has {x0.size} values; the model has {n} states")
+    uf = input_function(u, t)
+    if (uf is None) != (q == 0):
+        raise ValueError(
+            f"u is required: the model was fitted with {q} controls"
+            if q
+            else "u given, but the model was fitted without controls"
+        )
+    if uf is not None:
+        width = np.size(uf(t[0]))
+        if width != q:
+            raise ValueError(f"u has {width} columns but the model was fitted with {q}")
+    return t, x0, uf
+
+
+
+def integrate(f, x0, t, uf, kws: dict):
+    """:func:`scipy.integrate.solve_ivp` of an exported right-hand side ``f`` on ``t``."""
+
+    def rhs(s, state):
+        # One sample as a batch of one: library callables get 1-D arrays, as in fit.
+        return f(s, state[None, :], None if uf is None else uf(s)[None, :])[0]
+
+    return scipy.integrate.solve_ivp(rhs, (t[0], t[-1]), x0, t_eval=t, **kws)

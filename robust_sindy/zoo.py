@@ -225,7 +225,7 @@ def _fit_method(method, system, t, x, x_dot, seed=0):
     ``seed`` seeds the draws of PySINDy's ensembles, which use NumPy's global random
     state (restored afterwards), so that every run of a case gives the same result."""
     from .library import PolynomialLibrary
-    from .model import HuberSINDy
+    from .estimator import HuberSINDy
 
     if method == "huber":
         model = HuberSINDy(library=PolynomialLibrary(degree=system.degree))

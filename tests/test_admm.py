@@ -183,7 +183,7 @@ def test_warning_names_the_least_absolute_deviation_regime():
 
 @pytest.mark.parametrize("seed", range(6))
 def test_exact_line_search_matches_a_fine_scan(seed):
-    from robust_sindy._losses import huber
+    from robust_sindy.core.losses import huber
     from robust_sindy.solvers.newton import line_search as _line_search
     from robust_sindy.solvers.newton import slope as _slope
 

@@ -9,7 +9,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from robust_sindy import HuberSINDy, PolynomialLibrary
-from robust_sindy.model import IdentificationWarning
+from robust_sindy import IdentificationWarning
 from robust_sindy.selection.aliasing import aliased_columns
 
 

@@ -89,10 +89,12 @@ def test_heavy_tailed_state_noise_does_not_select_bias_terms(subsets, monkeypatc
     # drops them; a best-subset candidate without them scores better still.
     import functools
 
-    import robust_sindy.model
+    import robust_sindy.selection.choice
 
     monkeypatch.setattr(
-        robust_sindy.model, "select", functools.partial(robust_sindy.model.select, subsets=subsets)
+        robust_sindy.selection.choice,
+        "select",
+        functools.partial(robust_sindy.selection.choice.select, subsets=subsets),
     )
     data = Lorenz().generate(t_end=20.0, dt=0.01)
     rng = np.random.default_rng(0)

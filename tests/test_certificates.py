@@ -58,7 +58,7 @@ def test_kkt_is_invariant_to_column_scaling(solved):
 
 
 def test_non_finite_solver_output_is_never_certified():
-    from robust_sindy._certificates import certify
+    from robust_sindy.core.certificates import certify
 
     theta, y = random_problem(3)
     xi = np.zeros((theta.shape[1], y.shape[1]))

@@ -7,10 +7,12 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
-from robust_sindy._losses import huber_psi
+from robust_sindy.core.losses import huber_psi
 from robust_sindy.selection import lambda_max
 from robust_sindy.solvers import _kernel
+from robust_sindy.solvers import driver
 from robust_sindy.solvers import newton as nw
+from robust_sindy.solvers.problem import prepare
 
 from .conftest import lorenz_library, random_problem
 
@@ -152,12 +154,12 @@ def test_passes_over_theta_are_counted(monkeypatch):
     theta, y = lorenz_library(0, 2)
     res = rs.fit(theta, y, delta=1.0, lam=1.0)
     steps = res.info["newton_steps"]
-    if nw.use_kernel(nw.prepare(theta).A, y.shape[1]):
+    if driver.use_kernel(prepare(theta).A, y.shape[1]):
         # The compiled iteration works column by column: per step one pass for the
         # residual and gradient and one for the direction's image, per column one more
         # for the certificate and one for dropping rounding-level entries.
         assert 3 <= res.info["passes"] <= np.sum(2 * steps + 2) + 2
-    monkeypatch.setattr(nw, "USE_KERNEL", False)
+    monkeypatch.setattr(driver, "USE_KERNEL", False)
     res = rs.fit(theta, y, delta=1.0, lam=1.0)
     # One residual, one gradient and one direction image per step for all columns
     # together, plus the start.
@@ -182,7 +184,7 @@ def test_near_lad_points_are_certified_by_newton_without_the_admm():
     theta, y = theta[keep], y[keep]
     delta = np.atleast_1d(auto_delta(theta, y))
     lam = lambda_max(theta, y, delta) * np.logspace(0, -4, 50)[13]
-    out = nw.solve_newton(theta, y, delta, lam)
+    out = driver.solve(theta, y, delta, lam)
     assert out.converged.all() and not out.info["fallback"].any()
     assert rs.kkt_violation(theta, y, out.coef, delta, lam).max() <= 1e-8
 
@@ -209,7 +211,7 @@ def test_an_ill_conditioned_library_is_certified_by_newton_itself(seed):
     # tens of steps where it used to stall and hand the column to an ADMM that ran out
     # of iterations (uncertified).
     theta, y = _offset_cubic(seed)
-    assert nw.prepare(theta).condition() > 1e6
+    assert prepare(theta).condition() > 1e6
     res = rs.fit(theta, y, delta=1.5e-3, lam=0.0)
     assert res.converged and res.kkt.max() <= 1e-8
     assert not res.info["fallback"].any()
@@ -223,7 +225,7 @@ def test_row_direction_is_the_gram_direction_where_both_resolve():
     # Gram system, for the inlier piece (outliers' +-delta in the right-hand side), the
     # reweighted step, off-support coordinates and a Levenberg-Marquardt term alike.
     theta, y = random_problem(3, n=1, outliers=0.2)
-    prepared = nw.prepare(theta)
+    prepared = prepare(theta)
     A, G, T = prepared.A, prepared.G, 1.0 / prepared.a_norms**2
     p = G.shape[0]
     rng = np.random.default_rng(0)
@@ -294,7 +296,7 @@ def test_compiled_and_numpy_iterations_reach_the_same_certified_optimum(name, mo
     statuses = _record_kernel_statuses(monkeypatch)
     compiled = rs.fit(theta, y, **kwargs)
     assert statuses, "the compiled iteration did not run"
-    monkeypatch.setattr(nw, "USE_KERNEL", False)
+    monkeypatch.setattr(driver, "USE_KERNEL", False)
     plain = rs.fit(theta, y, **kwargs)
     assert len(statuses) == 1  # not called with the switch off
     for res in (compiled, plain):
@@ -309,7 +311,7 @@ def test_compiled_and_numpy_iterations_reach_the_same_certified_optimum(name, mo
 def test_columns_the_compiled_iteration_leaves_are_solved_by_the_numpy_steps(monkeypatch):
     theta, y = lorenz_library(0, 3)
     reference = rs.fit(theta, y, delta=1.0, lam=1.0)
-    monkeypatch.setattr(nw, "KERNEL_STEPS", 2)  # the kernel's budget: two steps
+    monkeypatch.setattr(driver, "KERNEL_STEPS", 2)  # the kernel's budget: two steps
     statuses = _record_kernel_statuses(monkeypatch)
     res = rs.fit(theta, y, delta=1.0, lam=1.0)
     assert np.all(statuses[0] == 1)  # out of steps: every column handed over
@@ -321,17 +323,17 @@ def test_columns_the_compiled_iteration_leaves_are_solved_by_the_numpy_steps(mon
 
 def test_the_compiled_iteration_takes_only_the_small_problems():
     theta, _ = random_problem(0, m=300, p=12, n=3)
-    prepared = nw.prepare(theta)
-    assert nw.use_kernel(prepared.A, 3) == _kernel.AVAILABLE
-    big = nw.prepare(np.ones((100_000, 10)))
-    assert not nw.use_kernel(big.A, 3)  # the batched NumPy passes serve every column
+    prepared = prepare(theta)
+    assert driver.use_kernel(prepared.A, 3) == _kernel.AVAILABLE
+    big = prepare(np.ones((100_000, 10)))
+    assert not driver.use_kernel(big.A, 3)  # the batched NumPy passes serve every column
     # A small library in column order (a selection of columns, theta[:, keep]) is
     # copied once in row order and goes to the kernel too; a large one is not copied.
-    fortran = nw.prepare(np.asfortranarray(theta))
+    fortran = prepare(np.asfortranarray(theta))
     assert fortran.A.theta.flags.c_contiguous
-    assert nw.use_kernel(fortran.A, 3) == _kernel.AVAILABLE
+    assert driver.use_kernel(fortran.A, 3) == _kernel.AVAILABLE
     large = np.asfortranarray(np.ones((100_000, 10)))
-    assert nw.prepare(large).A.theta is large
+    assert prepare(large).A.theta is large
 
 
 @pytest.mark.skipif(not _kernel.AVAILABLE, reason="numba is not installed")
@@ -370,13 +372,13 @@ def test_the_compiled_iteration_certifies_every_column_of_the_automatic_pipeline
     t, x, x_dot = bench_data(1000, states=3)
     statuses = _record_kernel_statuses(monkeypatch)
     numpy_runs = []
-    original = nw.newton
+    original = driver.newton
 
     def counted(*args, **kw):
         numpy_runs.append(1)
         return original(*args, **kw)
 
-    monkeypatch.setattr(nw, "newton", counted)
+    monkeypatch.setattr(driver, "newton", counted)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         rs.HuberSINDy().fit(x, t=t, x_dot=x_dot)

@@ -7,7 +7,8 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
-from robust_sindy.selection.screening import temporal_screen
+from robust_sindy.timeseries.derivatives import differentiate
+from robust_sindy.timeseries.temporal import temporal_screen
 
 from .conftest import van_der_pol
 
@@ -102,7 +103,7 @@ def test_a_start_without_inliers_takes_majoriser_steps():
 
 
 def test_huber_sindy_on_dask_arrays_chooses_on_a_sample_and_fits_everything(monkeypatch):
-    from robust_sindy import model as model_module
+    from robust_sindy import outofcore as model_module
     from robust_sindy.noise import contaminate
 
     monkeypatch.setattr(model_module, "DASK_SAMPLE", 1000)
@@ -136,7 +137,7 @@ def test_huber_sindy_on_dask_arrays_chooses_on_a_sample_and_fits_everything(monk
 
 
 def test_huber_sindy_differentiates_dask_states_chunk_by_chunk(monkeypatch):
-    from robust_sindy import model as model_module
+    from robust_sindy import outofcore as model_module
 
     monkeypatch.setattr(model_module, "DASK_SAMPLE", 1500)
     system = rs.systems.Lorenz()
@@ -154,9 +155,9 @@ def test_huber_sindy_differentiates_dask_states_chunk_by_chunk(monkeypatch):
     half = model.derivative_windows_
     assert np.array_equal(model.diagnostics_.derivative_half_window, half) and half.min() >= 2
     noise = temporal_screen(x[:1500], 0.01 * np.arange(1500)).scale
-    whole = rs.HuberSINDy()._differentiate(x, 0.01 * np.arange(len(x)), half, scale=noise)
+    whole = differentiate(x, 0.01 * np.arange(len(x)), "robust", half_window=half, scale=noise)
     lazy = da.from_array(x, chunks=700).map_overlap(
-        lambda b: rs.HuberSINDy()._differentiate(b, 0.01 * np.arange(len(b)), half, scale=noise),
+        lambda b: differentiate(b, 0.01 * np.arange(len(b)), "robust", half_window=half, scale=noise),
         depth={0: model_module.DASK_OVERLAP, 1: 0}, boundary="none", dtype=float,
     ).compute()  # fmt: skip
     close = np.isclose(lazy, whole, rtol=1e-6, atol=1e-6).all(axis=1)
@@ -189,7 +190,7 @@ def test_from_npy_reads_each_chunk_in_its_task(tmp_path):
 
 
 def test_huber_sindy_on_a_list_of_dask_trajectories(monkeypatch):
-    from robust_sindy import model as model_module
+    from robust_sindy import outofcore as model_module
 
     monkeypatch.setattr(model_module, "DASK_SAMPLE", 1500)
     system = rs.systems.Lorenz()
@@ -214,7 +215,7 @@ def test_huber_sindy_on_a_list_of_dask_trajectories(monkeypatch):
         whole = rs.HuberSINDy().fit(parts, 0.01)
     np.testing.assert_array_equal(model.support_, whole.support_)
     np.testing.assert_allclose(model.coef_, whole.coef_, rtol=1e-2, atol=1e-3)
-    with pytest.raises(ValueError, match="one array per trajectory"):
+    with pytest.raises(ValueError, match="x_dot has 1 trajectories but x has 2"):
         rs.HuberSINDy().fit(lazy, 0.01, x_dot=[lazy[0]])
     with pytest.raises(ValueError, match="uniform time step only"):
         rs.HuberSINDy().fit(lazy, [np.arange(1201.0), np.arange(1201.0)])
@@ -225,7 +226,7 @@ def test_dask_states_leave_out_the_derivatives_the_sampling_does_not_resolve(mon
     # samples.  Out of core the sample is fitted from its states as in memory, and the
     # samples of every chunk whose derivatives the sampling does not resolve are left
     # out of the refit, as the in-memory fit leaves them out.
-    from robust_sindy import model as model_module
+    from robust_sindy import outofcore as model_module
 
     monkeypatch.setattr(model_module, "DASK_SAMPLE", 1500)
     t, x = van_der_pol(4.5, 103, m=3000)
@@ -257,7 +258,7 @@ def test_dask_fit_warns_when_the_rest_of_the_data_is_not_like_the_sample(monkeyp
     # The model is chosen on the first samples; when most of the rest is corrupted (a
     # sensor that fails after them), the out-of-core screen leaves much of the data out,
     # and the sample's clean diagnostics must not speak for it.
-    from robust_sindy import model as model_module
+    from robust_sindy import outofcore as model_module
 
     monkeypatch.setattr(model_module, "DASK_SAMPLE", 1500)
     data = rs.systems.Lorenz().generate(t_end=29.99)  # 3000 samples
@@ -292,7 +293,7 @@ def test_dask_fit_warns_when_the_rest_of_the_data_is_not_like_the_sample(monkeyp
 def test_dask_library_and_fit_with_control_inputs(monkeypatch):
     # States and inputs come in separate arrays, so their concatenation has two column
     # blocks: the library must see one block of all inputs per row chunk.
-    from robust_sindy import model as model_module
+    from robust_sindy import outofcore as model_module
 
     monkeypatch.setattr(model_module, "DASK_SAMPLE", 1500)
     drone = rs.systems.Drone()

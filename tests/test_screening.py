@@ -5,11 +5,12 @@ import warnings
 import numpy as np
 import pytest
 
-from robust_sindy import HuberSINDy, PolynomialLibrary, _compiled
-from robust_sindy.differentiation import local_polynomial_derivative
-from robust_sindy.model import IdentificationWarning
+from robust_sindy import HuberSINDy, PolynomialLibrary
+from robust_sindy.core import compiled as _compiled
+from robust_sindy.timeseries.differentiation import local_polynomial_derivative
+from robust_sindy import IdentificationWarning
 from robust_sindy.selection import correlation_time
-from robust_sindy.selection.screening import temporal_screen
+from robust_sindy.timeseries.temporal import temporal_screen
 from robust_sindy.systems import Lorenz
 
 from .conftest import van_der_pol
@@ -125,7 +126,7 @@ def test_a_burst_of_noise_is_not_excused_as_a_fast_excursion():
 
 
 def test_smooth_local_scale_excuses_smooth_errors_only():
-    from robust_sindy.selection.screening import smooth_local_scale
+    from robust_sindy.core.statistics import smooth_local_scale
 
     rng = np.random.default_rng(0)
     base = rng.normal(size=(400, 1))
@@ -189,7 +190,7 @@ def test_derivatives_next_to_masked_entries_keep_their_order():
 
 
 def test_the_small_hankel_cholesky_solver_matches_lapack():
-    from robust_sindy.selection.screening import _hankel_solve
+    from robust_sindy.timeseries.temporal import _hankel_solve
 
     rng = np.random.default_rng(0)
     tau = rng.uniform(-1, 1, size=(40, 7, 9))  # sums of powers of 9 times per system
@@ -204,7 +205,7 @@ def test_the_small_hankel_cholesky_solver_matches_lapack():
 def test_shared_window_inverses_give_the_general_fit():
     # Uniform times share each window place's elemental inverses; times jittered
     # beyond that tolerance take the general batched solve: same fit.
-    from robust_sindy.selection.screening import _lts_fitted
+    from robust_sindy.timeseries.temporal import _lts_fitted
 
     rng = np.random.default_rng(3)
     t = 0.01 * np.arange(1500)
@@ -216,7 +217,7 @@ def test_shared_window_inverses_give_the_general_fit():
 
 @pytest.mark.parametrize("m", [1, 2, 5, 8, 9, 40, 41, 42, 300])
 def test_local_scale_is_the_windowed_median_shifted_inside_at_the_ends(m):
-    from robust_sindy.selection.screening import local_scale
+    from robust_sindy.core.statistics import local_scale
 
     a = np.random.default_rng(m).standard_t(2, size=(m, 3))
     for h in (1, 4, 20):
@@ -228,7 +229,7 @@ def test_local_scale_is_the_windowed_median_shifted_inside_at_the_ends(m):
 
 @pytest.mark.parametrize("m", [1, 2, 5, 9, 41, 300])
 def test_local_scale_ignores_nan_as_nanmedian_does(m):
-    from robust_sindy.selection.screening import local_scale
+    from robust_sindy.core.statistics import local_scale
 
     rng = np.random.default_rng(m)
     a = rng.standard_t(2, size=(m, 3))
@@ -244,7 +245,7 @@ def test_local_scale_ignores_nan_as_nanmedian_does(m):
 
 
 def test_unique_rows_groups_rows_as_numpy_unique_does():
-    from robust_sindy.selection.screening import _unique_rows
+    from robust_sindy.timeseries.temporal import _unique_rows
 
     key = np.random.default_rng(0).integers(-2, 3, size=(2000, 8))
     first, inverse = _unique_rows(key)
@@ -282,7 +283,7 @@ def test_temporal_screen_leaves_an_unresolved_excursion_alone(seed):
 
 
 def test_unresolved_derivatives_mark_the_excursions_only_and_are_unit_free():
-    from robust_sindy.differentiation import unresolved_derivatives
+    from robust_sindy.timeseries.differentiation import unresolved_derivatives
 
     t, _, x, near = _pulses(2)
     s = temporal_screen(x, t)
@@ -378,7 +379,7 @@ def test_a_state_noise_measured_too_large_does_not_excuse_gross_errors():
 
 def _numpy_only(monkeypatch):
     """Make the temporal screen's compiled kernels report that they cannot run."""
-    from robust_sindy.selection import _temporal_kernels
+    from robust_sindy.timeseries import _temporal_kernels
 
     monkeypatch.setattr(_temporal_kernels, "lts_windows", lambda *a, **k: None)
     monkeypatch.setattr(_temporal_kernels, "loo_predict", lambda *a, **k: None)
@@ -389,7 +390,7 @@ def _numpy_only(monkeypatch):
 def test_compiled_local_fits_agree_with_the_numpy_ones(seed, monkeypatch):
     # Trimmed fits and leave-one-out predictions: compiled, then the NumPy array
     # code on the same data (uniform and irregular times, gross errors, any units).
-    from robust_sindy.selection.screening import _clean_neighbours, _loo_predict, _lts_fitted
+    from robust_sindy.timeseries.temporal import clean_neighbours, loo_predict, _lts_fitted
 
     rng = np.random.default_rng(seed)
     m = int(rng.integers(14, 2500))
@@ -399,10 +400,10 @@ def test_compiled_local_fits_agree_with_the_numpy_ones(seed, monkeypatch):
     bad = rng.random(m) < 0.1
     x[bad] += np.abs(x).max() * rng.normal(size=bad.sum())
     flags = rng.random(m) < 0.2
-    nb = _clean_neighbours(flags, 4)
-    compiled = (_lts_fitted(x, t), *_loo_predict(x, t, nb, 4))
+    nb = clean_neighbours(flags, 4)
+    compiled = (_lts_fitted(x, t), *loo_predict(x, t, nb, 4))
     _numpy_only(monkeypatch)
-    numpy = (_lts_fitted(x, t), *_loo_predict(x, t, nb, 4))
+    numpy = (_lts_fitted(x, t), *loo_predict(x, t, nb, 4))
     for a, b in zip(compiled, numpy, strict=True):
         assert np.abs(a - b).max() <= 1e-9 * np.abs(b).max()
 
@@ -434,7 +435,7 @@ def test_a_state_constant_up_to_rounding_has_no_flags():
 
 
 def test_the_screen_runs_where_its_kernels_cannot_compile(monkeypatch):
-    from robust_sindy.selection import _temporal_kernels
+    from robust_sindy.timeseries import _temporal_kernels
 
     t, _, x = _smooth(seed=6)
     reference = temporal_screen(x, t)

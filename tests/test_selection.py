@@ -80,16 +80,15 @@ def _walk_cases():
 
 @pytest.mark.parametrize("name", ["random 0", "random 1", "lorenz, rows contaminated"])
 def test_the_compiled_walk_matches_the_path_solved_point_by_point(name, monkeypatch):
-    from robust_sindy.solvers import _kernel
-    from robust_sindy.solvers import newton as nw
+    from robust_sindy.solvers import _kernel, driver
 
     if not _kernel.usable():
         pytest.skip("numba is not installed")
     theta, y, delta = _walk_cases()[name]
     walks = []
-    original = nw.solve_path
+    original = driver.solve_path
     monkeypatch.setattr(
-        nw, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
+        driver, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
     )
     walked = path(theta, y, delta)
     assert walks and walks[0] is not None, "the compiled walk did not run"
@@ -101,19 +100,18 @@ def test_the_compiled_walk_matches_the_path_solved_point_by_point(name, monkeypa
 
 
 def test_a_walk_hands_the_points_it_cannot_certify_over_and_goes_on(monkeypatch):
-    from robust_sindy.solvers import _kernel
-    from robust_sindy.solvers import newton as nw
+    from robust_sindy.solvers import _kernel, driver
 
     if not _kernel.usable():
         pytest.skip("numba is not installed")
     theta, y, delta = _walk_cases()["lorenz, rows contaminated"]
     reference = path(theta, y, delta)
     walks = []
-    original = nw.solve_path
+    original = driver.solve_path
     monkeypatch.setattr(
-        nw, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
+        driver, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
     )
-    monkeypatch.setattr(nw, "KERNEL_STEPS", 2)  # most points need more steps than that
+    monkeypatch.setattr(driver, "KERNEL_STEPS", 2)  # most points need more steps than that
     short = path(theta, y, delta, reference.lams)
     info = walks[0][2]
     assert 0 < info["handed_over"] < reference.lams.shape[0] * y.shape[1]
@@ -127,8 +125,7 @@ def test_a_walk_solves_the_points_it_hands_over_as_cold_fits(monkeypatch):
     # least-absolute-deviation fit, where the walk cannot certify a few points; from
     # the previous point the NumPy iteration took hundreds of steps on two of them and
     # handed them to the ADMM, from the least-squares start they are certified at once.
-    from robust_sindy.solvers import _kernel, admm
-    from robust_sindy.solvers import newton as nw
+    from robust_sindy.solvers import _kernel, driver
 
     if not _kernel.usable():
         pytest.skip("numba is not installed")
@@ -139,12 +136,12 @@ def test_a_walk_solves_the_points_it_hands_over_as_cold_fits(monkeypatch):
     keep = ~screen_rows(theta, y).outliers
     theta, y = theta[keep], y[keep]
     walks, admm_runs = [], []
-    original, original_admm = nw.solve_path, admm.solve_admm
+    original, original_admm = driver.solve_path, driver.solve_admm
     monkeypatch.setattr(
-        nw, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
+        driver, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
     )
     monkeypatch.setattr(
-        admm, "solve_admm", lambda *a, **k: admm_runs.append(1) or original_admm(*a, **k)
+        driver, "solve_admm", lambda *a, **k: admm_runs.append(1) or original_admm(*a, **k)
     )
     walked = path(theta, y, auto_delta(theta, y))
     assert walks[0][2]["handed_over"] > 0 and not admm_runs
@@ -244,7 +241,7 @@ def test_leverage_corrected_residuals_deleted_for_suspect_samples():
     # by: it fits the sample (leverage near 1, a small residual).  The residual it
     # would have without the sample in the fit is gross; the others are studentised,
     # by sqrt(1 - h), a few percent at p / m = 10 / 800.
-    from robust_sindy.selection.screening import _leverage_corrected
+    from robust_sindy.selection.rows import _leverage_corrected
 
     rng = np.random.default_rng(0)
     t = np.linspace(0.0, 20.0, 800)

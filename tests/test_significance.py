@@ -10,6 +10,8 @@ from hypothesis import strategies as st
 
 from robust_sindy import HuberSINDy, PolynomialLibrary, fit
 from robust_sindy.selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t
+from robust_sindy.timeseries.derivatives import derivatives
+from robust_sindy.timeseries.trajectories import Trajectories
 
 from ._trajectories import rk4_trajectory
 
@@ -129,7 +131,8 @@ def test_estimated_derivatives_keep_a_term_under_the_floor_at_the_higher_bar():
     true[0, [2, 3]] = true[1, [1, 2]] = true[2, [0, 3, 6]] = True
     assert np.array_equal(model.support_, true)
     keep = ~model.screened_
-    (y,), _, _ = model._derivatives([x], [t], model.temporal_.flags, model.library_.transform(x))
+    data = Trajectories.from_user(x, t)
+    y = derivatives(data, model.temporal_, "robust", "auto", True, model.library_.transform(x)).y
     th = model.standardizer_.theta(model.library_.transform(x))[keep]
     yk = model.standardizer_.y(y)[keep]
     coef = model.standardizer_.coef_to_standard(model.coef_.T)
@@ -185,16 +188,16 @@ def _zoo_states(name, family, subsets=True, burn=900):
     by the five-sample stencil, whose smooth errors are what the pruning must handle."""
     import functools
 
-    import robust_sindy.model
+    import robust_sindy.selection.choice
     from robust_sindy import zoo
 
     system = {s.name: s for s in zoo.polynomial_systems()}[name]
     rng = np.random.default_rng([0, zoo.FAMILIES.index(family), 1])
     t, x, _ = rk4_trajectory(system, 2000, burn)
     noisy, _ = zoo.contaminate_family(x, family, rng)
-    select = functools.partial(robust_sindy.model.select, subsets=subsets)
+    select = functools.partial(robust_sindy.selection.choice.select, subsets=subsets)
     with warnings.catch_warnings(record=True) as caught, pytest.MonkeyPatch.context() as mp:
-        mp.setattr(robust_sindy.model, "select", select)
+        mp.setattr(robust_sindy.selection.choice, "select", select)
         warnings.simplefilter("always")
         model = HuberSINDy(
             library=PolynomialLibrary(degree=system.degree), derivative_window="fixed"

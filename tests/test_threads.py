@@ -5,9 +5,10 @@ import threading
 import numpy as np
 import pytest
 
-from robust_sindy import _compiled, _threads
+from robust_sindy.core import compiled as _compiled
+from robust_sindy.core import threads as _threads
 from robust_sindy.selection import path
-from robust_sindy.selection.screening import temporal_screen
+from robust_sindy.timeseries.temporal import temporal_screen
 
 from .conftest import random_problem
 

@@ -46,15 +46,16 @@ from .criteria import (
     MIN_BIC_MARGIN,
     Selection,
     blocked_folds,
-    correlation_time,
     information_criterion,
     score_margin,
     select,
 )
 from .path import PATH_MAX_ITER, Path, lambda_max, path
 from .refit import STAGE_ROUNDS, threshold_refit
-from .scale import HUBER_EFFICIENCY_CONSTANT, auto_delta, robust_scale
-from .screening import Screening, screen_rows
+from ..core.scaling import robust_scale
+from ..core.statistics import correlation_time
+from ..fitting import HUBER_EFFICIENCY_CONSTANT, auto_delta
+from .rows import Screening, screen_rows
 from .significance import SIGNIFICANCE, robust_t
 from .subsets import SUBSET_BUDGET, best_subsets
 

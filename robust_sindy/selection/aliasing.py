@@ -15,14 +15,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._validation import as_float_array
+from ..core.statistics import ALIAS_RTOL
+from ..core.validation import as_float_array
 
 __all__ = ["ALIAS_RTOL", "aliased_columns"]
-
-#: Relative distance of a column to the span of the earlier ones below which it is
-#: an exact linear combination of them: far below any measurement noise (1e-10 of the
-#: column's norm), far above the rounding of a constant state (about 1e-14).
-ALIAS_RTOL = 1e-10
 
 
 def aliased_columns(theta, rtol: float = ALIAS_RTOL) -> np.ndarray:

@@ -27,13 +27,15 @@ from __future__ import annotations
 
 import numpy as np
 
-from .refit import _refit_column
+from .refit import refit_column
 from .significance import VISIBLE, robust_t
 
 __all__ = [
     "BIAS_MARGIN",
     "NOISE_SLACK",
     "carried_noise",
+    "library_noise",
+    "noise_columns",
     "drop_biased_terms",
     "first_order_bias",
     "noise_gram",
@@ -52,6 +54,46 @@ NOISE_SLACK = 4.0
 
 # The median of a chi-square variable with one degree of freedom.
 _MEDIAN_CHI2_1 = 0.454936423119572
+
+
+def noise_columns(library, z, temporal, theta_scale) -> list[np.ndarray] | None:
+    """The noise of each state carried through the standardised library, first order,
+    at every sample: ``sigma_k dTheta/dx_k / theta_scale`` per state ``k`` (``sigma_k``
+    measured by the ``temporal`` screen, the derivative by central differences of the
+    fitted ``library`` at its inputs ``z`` with the states repaired); None without the
+    screen."""
+    if temporal is None or not np.all(np.isfinite(temporal.scale)):
+        return None
+    base = z.copy()
+    n = temporal.scale.size
+    base[:, :n] = temporal.repaired
+    out = []
+    for k, sigma in enumerate(temporal.scale):
+        step = 1e-4 * max(float(np.sqrt(np.mean(base[:, k] ** 2))), np.finfo(float).tiny)
+        up, down = base.copy(), base.copy()
+        up[:, k] += step
+        down[:, k] -= step
+        grad = (library.transform(up) - library.transform(down)) / (2 * step)
+        out.append(sigma * grad / theta_scale)
+    return out
+
+
+def library_noise(noise, theta_kept) -> tuple[np.ndarray, float]:
+    """The library noise (:func:`noise_columns`) per column relative to its root mean
+    square, and along the least-excited direction of the standardised library
+    ``theta_kept``; NaN without the temporal screen, which measures the noise."""
+    p = theta_kept.shape[1]
+    if noise is None:
+        return np.full(p, np.nan), float("nan")
+    _, sing, vt = np.linalg.svd(theta_kept, full_matrices=False)
+    columns = sum(np.mean(a**2, axis=0) for a in noise)
+    along = sum(np.sum((a @ vt.T) ** 2, axis=0) for a in noise)
+    rms = np.sqrt(np.mean(theta_kept**2, axis=0))
+    columns = np.sqrt(columns) / np.where(rms > 0, rms, 1.0)
+    # Exactly degenerate directions (a constant state, duplicated terms) carry no
+    # signal to confuse: the condition number of the selected terms reports them.
+    ok = sing > 1e-8 * sing[0]
+    return columns, float(np.max(np.sqrt(along[ok]) / sing[ok]))
 
 
 def noise_gram(noise_columns) -> np.ndarray:
@@ -144,7 +186,7 @@ def truncation_bias(theta, error, coef, segments=None) -> np.ndarray:
     of ``error`` counts.
 
     With ``error`` the difference between the estimated derivatives and a reference of
-    higher order (:func:`robust_sindy.differentiation.higher_order_derivative`), this
+    higher order (:func:`robust_sindy.timeseries.differentiation.higher_order_derivative`), this
     is the part of each coefficient that the estimate's truncation error explains: on a
     coarsely sampled trajectory that error is systematic and smooth, and a regression
     explains it with spurious terms.  Returns ``beta`` (p,): 0 off the support, ``inf``
@@ -210,6 +252,6 @@ def drop_biased_terms(
             dropped[sel[worst], k] = ratio[worst]
             keep = c != 0
             keep[sel[worst]] = False
-            c = _refit_column(theta, xdot[:, k], keep, delta[k], method, solver, options)
+            c = refit_column(theta, xdot[:, k], keep, delta[k], method, solver, options)
         coef[:, k] = c
     return coef, dropped

@@ -9,12 +9,12 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from .._fit import ConvergenceWarning
-from .._losses import huber, huber_psi
-from .._validation import check_int, check_problem, loss_delta
+from ..core.statistics import correlation_time
+from ..fitting import HUBER_EFFICIENCY_CONSTANT, ConvergenceWarning, auto_delta, check_huber_method
+from ..core.losses import huber, huber_psi
+from ..core.validation import check_int, check_problem, loss_delta
 from .path import Path, path, pilot_budget
-from .refit import STAGE_ROUNDS, _refit_column, _select_column
-from .scale import HUBER_EFFICIENCY_CONSTANT, _check_method, auto_delta
+from .refit import STAGE_ROUNDS, refit_column, select_column
 from .subsets import best_subsets
 
 __all__ = [
@@ -22,7 +22,6 @@ __all__ = [
     "MIN_BIC_MARGIN",
     "Selection",
     "blocked_folds",
-    "correlation_time",
     "information_criterion",
     "select",
 ]
@@ -34,37 +33,6 @@ CRITERIA = ("bic", "cv")
 #: the data do not strongly prefer the chosen support (6: "strong" evidence on the
 #: scale of Kass and Raftery, 1995).
 MIN_BIC_MARGIN = 6.0
-
-
-def correlation_time(residuals, segments=None, max_lag: int = 100) -> np.ndarray:
-    """Integrated autocorrelation time per column of time-ordered ``residuals`` (m, n).
-
-    ``tau = 1 + 2 sum_l rho_l``, the sum over lags until the autocorrelation first falls
-    below 0.05 (at most ``max_lag``), within each trajectory of ``segments`` (slices);
-    at least 1.  ``m / tau`` samples of the residuals carry as much information as
-    ``m`` independent ones: residuals of numerically differentiated data are smooth in
-    time, and without this correction a criterion takes their systematic part for
-    signal and adds spurious terms.
-    """
-    r = np.asarray(residuals, dtype=float)
-    r = r[:, None] if r.ndim == 1 else r
-    segments = [slice(0, r.shape[0])] if segments is None else segments
-    r = r - np.mean(r, axis=0)
-    var = np.sum(r**2, axis=0)
-    tau = np.ones(r.shape[1])
-    alive = var > 0
-    for lag in range(1, max_lag + 1):
-        acf = np.zeros(r.shape[1])
-        for seg in segments:
-            a = r[seg]
-            if a.shape[0] > lag:
-                acf += np.einsum("ij,ij->j", a[lag:], a[:-lag])
-        rho = np.where(var > 0, acf / np.where(var > 0, var, 1.0), 0.0)
-        alive &= rho >= 0.05
-        if not alive.any():
-            break
-        tau += np.where(alive, 2 * rho, 0.0)
-    return tau
 
 
 def information_criterion(theta, xdot, coef, delta, scale=None, tau=None) -> np.ndarray | float:
@@ -187,10 +155,10 @@ def _stage_all(theta, y, path_coef, delta, tol, method, solver, options, caches=
         cache = caches[k]
 
         def refit(keep, k=k):
-            return _refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
+            return refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
 
         for i in range(L):
-            out[i, :, k] = _select_column(
+            out[i, :, k] = select_column(
                 path_coef[i, :, k], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache
             )
     return out
@@ -225,7 +193,7 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
         cache = caches[k]
 
         def refit(keep, k=k):
-            return _refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
+            return refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
 
         def score(c, k=k):
             return information_criterion(theta, y[:, k], c, delta[k], tau=tau[k])
@@ -251,7 +219,7 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
             key = mask.tobytes()
             if key not in cache:
                 cache[key] = refit(mask)
-            c = _select_column(cache[key], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache)
+            c = select_column(cache[key], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache)
             found[k].append((c, score(c)))
             top = min(top, found[k][-1][1])
     count = max((len(v) for v in found.values()), default=0)
@@ -391,7 +359,7 @@ def select(
     theta, y, _ = check_problem(theta, xdot)
     if criterion not in CRITERIA:
         raise ValueError(f"criterion must be one of {CRITERIA}; got {criterion!r}")
-    _check_method(method, "the selection")
+    check_huber_method(method, "the selection")
     if not np.isfinite(tol) or tol < 0:
         raise ValueError(f"tol must be a finite number >= 0; got {tol!r}")
     if isinstance(delta, str) and delta == "auto":

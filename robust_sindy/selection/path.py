@@ -9,12 +9,11 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from .._certificates import certify
-from .._fit import ConvergenceWarning, _admm_options, fit
-from .._losses import huber_psi
-from .._validation import as_float_array, check_int, check_positive, check_problem, loss_delta
-from ..solvers import newton
-from .scale import _check_method, auto_delta
+from ..core.certificates import certify
+from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fast_path_options, fit
+from ..core.losses import huber_psi
+from ..core.validation import as_float_array, check_int, check_positive, check_problem, loss_delta
+from ..solvers import driver, problem
 
 __all__ = ["PATH_MAX_ITER", "Path", "lambda_max", "path"]
 
@@ -142,7 +141,7 @@ def path(
     ``method="admm"`` the library is equilibrated and factorised once, and each point
     starts from the previous solution: where the compiled iteration applies, it walks
     the whole grid, every point reusing the previous one's last pass and inlier Gram
-    matrix (:func:`robust_sindy.solvers.newton.solve_path`), else each point is a fast
+    matrix (:func:`robust_sindy.solvers.driver.solve_path`), else each point is a fast
     path fit from the previous solution and its dual.  Either way every point is
     certified in the user's units, as a single fit is (``warm_start=False`` solves every
     point cold, for comparison).  ``method="cvxpy"`` solves every point with the
@@ -176,7 +175,7 @@ def path(
         When points could not be certified.
     """
     theta, y, _ = check_problem(theta, xdot)
-    _check_method(method, "the path")
+    check_huber_method(method, "the path")
     if not isinstance(warm_start, bool):
         raise ValueError(f"warm_start must be True or False; got {warm_start!r}")
     if "warm_start" in options:
@@ -195,16 +194,16 @@ def path(
     if method == "admm":
         if solver is not None:
             raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
-        opts = _admm_options(options, theta, y, False, "huber")
+        opts = fast_path_options(options, theta, y)
         opts.pop("warm_start")
-        prepared = newton.prepare(theta, equilibrate=opts["equilibrate"], kappa=opts["kappa"])
+        prepared = problem.prepare(theta, equilibrate=opts["equilibrate"], kappa=opts["kappa"])
         col_norms = np.linalg.norm(theta, axis=0)
         # Warm-started, the compiled iteration walks the whole grid (each point from the
         # last one's solution, last pass and inlier Gram matrix); every point is then
         # certified here in the user's units, as a single fit is.
         walked = None
         if warm_start:
-            walked = newton.solve_path(theta, y, delta_k, grid, prepared=prepared, **opts)
+            walked = driver.solve_path(theta, y, delta_k, grid, prepared=prepared, **opts)
 
         def accepted(solved, kkt, rel_gap):  # the solver's verdict and the certificate's
             return solved & ((kkt <= opts["tol"]) | (rel_gap <= opts["gap_tol"]))
@@ -218,7 +217,7 @@ def path(
         else:
             previous = None
             for i in tqdm(range(L), desc="lam path", disable=not progress, leave=False):
-                out = newton.solve_newton(
+                out = driver.solve(
                     theta, y, delta_k, grid[i], warm_start=previous, prepared=prepared, **opts
                 )
                 cert = certify(theta, y, out.coef, delta_k, grid[i][None, :], col_norms)

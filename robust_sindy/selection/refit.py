@@ -4,17 +4,24 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._fit import fit
-from .._losses import huber_psi
-from .._validation import check_int, check_problem
+from ..fitting import fit
+from ..core.losses import huber_psi
+from ..core.validation import check_int, check_problem
 
-__all__ = ["STAGE_ROUNDS", "one_step_contributions", "threshold_refit"]
+__all__ = [
+    "STAGE_ROUNDS",
+    "debias",
+    "one_step_contributions",
+    "refit_column",
+    "select_column",
+    "threshold_refit",
+]
 
 #: Rounds of the selection stage (drop, refit) before the support must be stable.
 STAGE_ROUNDS = 10
 
 
-def _refit_column(theta, y, keep, delta, method, solver, options) -> np.ndarray:
+def refit_column(theta, y, keep, delta, method, solver, options) -> np.ndarray:
     """Huber fit with ``lam = 0`` on the columns ``keep`` (zeros elsewhere)."""
     coef = np.zeros(theta.shape[1])
     if keep.any():
@@ -22,7 +29,7 @@ def _refit_column(theta, y, keep, delta, method, solver, options) -> np.ndarray:
     return coef
 
 
-def _select_column(coef, tol, rounds, col, ynorm, refit, cache=None):
+def select_column(coef, tol, rounds, col, ynorm, refit, cache=None):
     """The selection stage on one column (see :func:`threshold_refit`)."""
     keep = coef != 0
     for _ in range(rounds):
@@ -78,10 +85,21 @@ def threshold_refit(
     for k in range(y.shape[1]):
 
         def refit(keep, k=k):
-            return _refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
+            return refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
 
-        coef[:, k] = _select_column(coef[:, k], tol, rounds, col, ynorm[k], refit)
+        coef[:, k] = select_column(coef[:, k], tol, rounds, col, ynorm[k], refit)
     return coef[:, 0] if one_d else coef
+
+
+def debias(theta, y, coef, delta, method: str, solver, options: dict) -> np.ndarray:
+    """Refit every equation's nonzero terms by Huber with ``lam = 0`` (the L1 penalty's
+    shrinkage removed): :func:`threshold_refit` with ``tol = 0`` and one round, by
+    ``method`` when it is a Huber method (else the fast path), ``solver`` for CVXPY."""
+    method = method if method in ("admm", "cvxpy") else "admm"
+    solver = solver if method == "cvxpy" else None
+    return threshold_refit(
+        theta, y, coef, delta, tol=0.0, max_rounds=1, method=method, solver=solver, **options
+    )
 
 
 def one_step_contributions(theta, xdot, coef, delta) -> np.ndarray:

@@ -19,9 +19,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._losses import huber_psi
-from .._validation import check_problem
-from .criteria import correlation_time
+from ..core.losses import huber_psi
+from ..core.validation import check_problem
+from ..core.statistics import correlation_time
 
 __all__ = ["SIGNIFICANCE", "SIGNIFICANCE_ESTIMATED", "VISIBLE", "robust_t"]
 

@@ -12,7 +12,7 @@ still negative there: on near-least-absolute-deviation pieces such a step can be
 of magnitude too short), with the NumPy iteration's Levenberg-Marquardt rule and its
 proximal-gradient step where the direction is no descent direction.  The passes over
 the library are BLAS products (on one thread); the columns, independent, run side by side
-on the machine's cores (:func:`robust_sindy._threads.map_threads`), each computed as it
+on the machine's cores (:func:`robust_sindy.core.threads.map_threads`), each computed as it
 would be alone.  At ``m = 1000`` a step costs tens of microseconds
 instead of the ~0.5 ms of NumPy calls.  Along a ``lam`` grid (:func:`newton_path_kernel`)
 each point starts from the last one's solution and reuses its last pass and its inlier
@@ -20,7 +20,7 @@ Gram matrix: a warm point no longer pays one pass and one Gram matrix before its
 step.
 
 A column ends when its relative KKT violation (the formula of
-:func:`robust_sindy._certificates.kkt_from_gradient`) is below ``tol / 10``, after
+:func:`robust_sindy.core.certificates.kkt_from_gradient`) is below ``tol / 10``, after
 dropping rounding-level entries where the proximal-gradient map gives zeros if the
 violation stays below ``tol``.  Where the support's inlier Gram block is numerically
 singular (a Cholesky pivot below ``1e-11`` of the block's largest diagonal entry: fewer
@@ -28,14 +28,14 @@ inliers than terms), the step is the reweighted least-squares one, as in the Num
 iteration.  It handles only what is regular: where that block is singular too (an
 ill-conditioned library), where no step makes progress, where the violation has not
 halved in 20 steps, or after its step budget, it stops and says so; the caller
-(:func:`robust_sindy.solvers.newton.solve_newton`) then solves that column with the
+(:func:`robust_sindy.solvers.driver.solve`) then solves that column with the
 NumPy iteration from the same start, which has eigenvalue cuts, steps from the rows
 and rounding-free residuals for those pieces.  Either way :func:`robust_sindy.fit`
 certifies the result in the user's units: the kernel is an accelerator, the
 certificate still decides.
 
 Numba is a dependency of the package, imported on the kernel's first use
-(:mod:`robust_sindy._compiled`); if it is not installed, :data:`AVAILABLE` is ``False``
+(:mod:`robust_sindy.core.compiled`); if it is not installed, :data:`AVAILABLE` is ``False``
 and the NumPy iteration does all the work.  The compiled code is cached on disk: the
 first call in a fresh installation compiles it once (about 10 s), later processes load
 it (a fraction of a second).
@@ -45,10 +45,10 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._blas import one_thread
-from .._compiled import AVAILABLE, Kernels
-from .._threads import map_threads
-from .newton import _ARMIJO, _DIRECT_GRAM, _DRIFT, _LM, _MAX_STEP, _UPDATE_ROWS
+from ..core.blas import one_thread
+from ..core.compiled import AVAILABLE, Kernels
+from ..core.threads import map_threads
+from .problem import ARMIJO, DIRECT_GRAM, DRIFT, LM, MAX_STEP, UPDATE_ROWS
 
 __all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel", "newton_path_kernel", "usable"]
 
@@ -112,7 +112,7 @@ def _line_search(r, q, x, d, lam, delta, slope0, slope1):
     lo, s_lo = 0.0, slope0
     hi = 1.0
     s_hi = _slope(hi, r, q, x, d, lam, delta) if np.isnan(slope1) else slope1
-    while s_hi < 0.0 and hi < _MAX_STEP:
+    while s_hi < 0.0 and hi < MAX_STEP:
         lo, s_lo = hi, s_hi
         hi *= 2.0
         s_hi = _slope(hi, r, q, x, d, lam, delta)
@@ -175,7 +175,7 @@ def _fresh_gram(theta, scale, G, inl, M):
         M[:, :] = G - _row_gram(theta, scale, outliers, np.ones(outliers.shape[0]))
         ok = True
         for j in range(p):
-            if M[j, j] <= (1.0 - _DIRECT_GRAM) * G[j, j]:
+            if M[j, j] <= (1.0 - DIRECT_GRAM) * G[j, j]:
                 ok = False
         if ok:
             return
@@ -269,7 +269,7 @@ def _losses(theta, scale, y, delta, x, r, psi, g, inl, xs):
 @_jit
 def _stationarity(lam, x, g, norms, loss, psi_norm, sup, sigma):
     """From one pass's ``g``, loss and ``||psi||``: the objective at ``lam`` and the
-    relative KKT violation (as ``robust_sindy._certificates.kkt_from_gradient``), and
+    relative KKT violation (as ``robust_sindy.core.certificates.kkt_from_gradient``), and
     the proximal-gradient support ``sup`` with its signs ``sigma``."""
     p = x.shape[0]
     obj = loss
@@ -384,7 +384,7 @@ def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps
             for i in range(m):
                 if inl[i] != old[i]:
                     n_changed += 1
-            if n_changed <= _UPDATE_ROWS * m:
+            if n_changed <= UPDATE_ROWS * m:
                 changed = np.flatnonzero(inl != old)
                 sign = np.empty(changed.shape[0])
                 for a in range(changed.shape[0]):
@@ -396,7 +396,7 @@ def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps
                 M += _row_gram(theta, scale, changed, sign)
                 updated = True
                 for j in range(p):
-                    if drift[j] > _DRIFT * M[j, j]:
+                    if drift[j] > DRIFT * M[j, j]:
                         updated = False
         if not updated:
             _fresh_gram(theta, scale, G, inl, M)
@@ -427,7 +427,7 @@ def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps
             if not slope0 < 0.0:
                 status = 3
                 break
-        if full <= obj + _ARMIJO * slope0:
+        if full <= obj + ARMIJO * slope0:
             t = 1.0
             if mu > 0.0 or reweighted:
                 slope1 = _slope(1.0, r, q, x, d, lam, delta)
@@ -443,7 +443,7 @@ def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps
                 break
         # Damping after a step the objective did not accept in full, relaxed after full
         # (or longer) steps (the rule of the NumPy iteration).
-        mu = _RELAX * mu if t >= 1.0 else max(10.0 * mu, _LM * viol)
+        mu = _RELAX * mu if t >= 1.0 else max(10.0 * mu, LM * viol)
         if mu < 1e-12:
             mu = 0.0
         for j in range(p):
@@ -557,7 +557,7 @@ def newton_kernel(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_
     (the proximal-gradient step where the Newton direction is no descent direction).
     Returns ``(x, status, steps, passes)`` with the status codes of
     :data:`KERNEL_STATUS` (``x`` a new array), or ``None`` where the kernel cannot be
-    compiled (:meth:`robust_sindy._compiled.Kernels.run`).
+    compiled (:meth:`robust_sindy.core.compiled.Kernels.run`).
     """
     k = y.shape[1]
     status = np.zeros(k, dtype=np.int64)

@@ -32,7 +32,7 @@ Speed-ups, all exact (the estimator does not change):
   the residual tests pass.  Only a point whose KKT certificate is below ``tol`` ends a
   column.
 
-This is the fallback of the fast path (:func:`robust_sindy.solvers.newton.solve_newton`
+This is the fallback of the fast path (:func:`robust_sindy.solvers.driver.solve`
 runs the Newton method first and hands over the columns it cannot certify) and, with
 ``PAPER_OPTIONS``, the paper's own method.
 
@@ -46,45 +46,13 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from .._certificates import certify, column_norms
-from .._losses import huber_prox, huber_psi, soft_threshold
-from ._base import SolverOutput
-from .newton import Prepared, column_objective, newton, prepare
+from ..core.certificates import certify, column_norms
+from ..core.losses import huber_prox, huber_psi, soft_threshold
+from .newton import newton
+from .problem import DEFAULT_OPTIONS, PAPER_OPTIONS, Prepared, SolverOutput, column_objective, prepare
 
 __all__ = ["DEFAULT_OPTIONS", "PAPER_OPTIONS", "solve_admm"]
 
-DEFAULT_OPTIONS = dict(
-    rho=0.1,
-    kappa=1.0,
-    alpha=1.6,
-    equilibrate=True,
-    adaptive_rho=True,
-    polish=True,
-    max_iter=20000,
-    eps_abs=1e-10,
-    eps_rel=1e-10,
-    tol=1e-8,
-    gap_tol=1e-12,
-    check_every=10,
-    newton_steps=8,
-    warm_start=None,
-)
-
-#: The paper's own settings (Table 1): rho = kappa = 1, no equilibration, no adaptation,
-#: no over-relaxation, no polish, 5000 iterations, tolerance 1e-6.
-PAPER_OPTIONS = dict(
-    rho=1.0,
-    kappa=1.0,
-    alpha=1.0,
-    equilibrate=False,
-    adaptive_rho=False,
-    polish=False,
-    max_iter=5000,
-    eps_abs=1e-6,
-    eps_rel=1e-6,
-    tol=1e-6,
-    gap_tol=1e-6,
-)
 
 _RHO_MIN, _RHO_MAX, _MU, _TAU_MAX = 1e-10, 1e10, 10.0, 10.0
 _MAX_POLISH_INTERVAL = 100
@@ -151,7 +119,7 @@ def solve_admm(
         Coefficients (p, n) and, optionally, the dual estimate ``psi_delta(r)`` (m, n)
         of an earlier solve; missing duals are derived from the coefficients.
     prepared : Prepared, optional
-        :func:`robust_sindy.solvers.newton.prepare` applied to this ``theta`` (skips
+        :func:`robust_sindy.solvers.problem.prepare` applied to this ``theta`` (skips
         the equilibration and the factorisation when solving repeatedly on the same
         library).
     """

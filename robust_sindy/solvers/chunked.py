@@ -34,8 +34,8 @@ from dataclasses import dataclass, field
 import numpy as np
 import scipy.linalg
 
-from .._certificates import gap_from_sums, kkt_from_gradient, rounding_free
-from .._losses import huber, huber_psi
+from ..core.certificates import gap_from_sums, kkt_from_gradient, rounding_free
+from ..core.losses import huber, huber_psi
 
 __all__ = ["ChunkedRun", "is_dask", "solve_chunked"]
 
@@ -187,7 +187,7 @@ def _deficient(H, col) -> bool:
     return bool(ev[0] <= 1e-10 * max(ev[-1], 0.0) or ev[-1] <= 0)
 
 
-def _lasso_step(H, g, xi, lam, col, fit):
+def _lasso_step(H, g, xi, lam, col, lasso):
     """Minimiser ``z`` of ``g^T (z - xi) + (z - xi)^T H (z - xi) / 2 + sum lam |z|``.
 
     In equilibrated coordinates ``u = col * z``: with ``Ht = H / (col col^T)`` and
@@ -209,8 +209,7 @@ def _lasso_step(H, g, xi, lam, col, fit):
     # c = L u - L^-T g / col: the step's right-hand side from the gradient alone, so
     # near the optimum it is not the difference of two large numbers.
     c = L @ (col * xi) - scipy.linalg.solve_triangular(L, g / col, trans="T")
-    res = fit(L, c, loss="squared", lam=lam / col)
-    return res.coef / col
+    return lasso(L, c, lam / col) / col
 
 
 def solve_chunked(
@@ -219,6 +218,7 @@ def solve_chunked(
     delta: np.ndarray,
     lam: np.ndarray,
     *,
+    lasso,
     tol: float = 1e-8,
     max_iter: int = 50,
     progress: bool = False,
@@ -227,18 +227,10 @@ def solve_chunked(
 
     ``delta`` (n,), ``lam`` (p, n).  Returns the coefficients, objective, relative KKT
     violation and duality gap per column (the in-memory certificate's definitions), and
-    the passes over the data.
+    the passes over the data.  ``lasso(design, target, lam)`` solves the small Lasso of
+    each Newton step in memory (``design`` p x p) and returns its coefficients.
     """
     from tqdm import tqdm
-
-    from .._fit import fit as fit_in_memory
-
-    def inner(design, target, loss, lam):
-        import warnings
-
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore")
-            return fit_in_memory(design, target, loss=loss, lam=lam)
 
     theta, y = _blocks(theta, y)
     p, n = theta.shape[1], y.shape[1]
@@ -249,7 +241,7 @@ def solve_chunked(
     col_norms = np.sqrt(col_sq)
     xi = np.zeros((p, n))
     for k in range(n):  # least-squares (Lasso) start, from the Gram matrix
-        xi[:, k] = _lasso_step(start["G"], -start["b"][:, k], np.zeros(p), lam[:, k], col, inner)
+        xi[:, k] = _lasso_step(start["G"], -start["b"][:, k], np.zeros(p), lam[:, k], col, lasso)
     stats = _reduce(_stats, theta, y, xi, delta, True)
     passes += 1
     iterations = np.zeros(n, dtype=int)
@@ -267,7 +259,7 @@ def solve_chunked(
             passes += 1
         for k in np.flatnonzero(~done):
             H = stats["M"][k] if k in deficient else stats["H"][k]
-            z = _lasso_step(H, -stats["g"][:, k], xi[:, k], lam[:, k], col, inner)
+            z = _lasso_step(H, -stats["g"][:, k], xi[:, k], lam[:, k], col, lasso)
             d[:, k] = z - xi[:, k]
             iterations[k] += 1
         trial = _reduce(_trial, theta, y, xi, d, delta, True)

@@ -1,4 +1,4 @@
-"""Batched active-set (semismooth) Newton: the fast path of :func:`robust_sindy.fit`.
+"""Batched active-set (semismooth) Newton: the first solver of the fast path.
 
 For every target column ``y`` (all columns are solved together) it solves
 
@@ -36,9 +36,10 @@ the cut would drop the directions along which the optimum still moves.  Every st
 safeguarded: the full step if it decreases the objective enough (Armijo), else the
 exact minimiser along the direction (:func:`line_search`), and a proximal-gradient step
 when the Newton direction is no descent direction.  A column ends when its relative KKT
-violation (:mod:`robust_sindy._certificates`) is below ``tol``: the certificate decides,
-not the factorisation.  Columns it cannot certify within its step budget are handed to the ADMM
-(:mod:`robust_sindy.solvers.admm`), warm-started from the Newton point.
+violation (:mod:`robust_sindy.core.certificates`) is below ``tol``: the certificate decides,
+not the factorisation.  The driver (:mod:`robust_sindy.solvers.driver`) hands the
+columns it cannot certify within its step budget to the ADMM, warm-started from the
+Newton point.
 
 One step costs three passes over ``Theta`` for all columns together (residual,
 gradient, the direction's image), ``|changed| p^2`` for the Gram update (``|O| p^2``
@@ -46,18 +47,8 @@ when formed afresh) and a ``|S|``-sized eigen-decomposition per column; where th
 needs a cut, a singular value decomposition of the weighted rows on the support
 (``|rows| |S|^2``).
 
-On small problems (``m p k`` up to :data:`KERNEL_WORK`, e.g. a thousand samples of a
-library of 35 terms and three targets, and every fit along a path at that size) a
-step's NumPy calls cost more than its passes over ``Theta``: there a compiled version
-of the same iteration (:mod:`robust_sindy.solvers._kernel`, Numba, column by column,
-the columns side by side on the machine's cores: :mod:`robust_sindy._threads`)
-takes the steps first, 3-5 times faster, and the NumPy iteration solves any column
-it could not certify (singular support blocks, no progress, its step budget) from the
-same start.  ``USE_KERNEL = False`` switches it off.  Along a ``lam`` path
-(:func:`solve_path`) the compiled iteration walks the whole grid, each point starting
-from the last one's solution with its last pass (residuals, gradient, inliers: only the
-objective and the KKT violation depend on ``lam``) and its inlier Gram matrix, updated
-by the samples that changed sides.
+On small problems the driver runs a compiled twin of this iteration first
+(:mod:`robust_sindy.solvers._kernel`).
 """
 
 from __future__ import annotations
@@ -65,162 +56,27 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.linalg
 
-from .._certificates import column_norms, kkt_from_gradient, rounding_free
-from .._losses import huber_psi, soft_threshold
-from ._base import SolverOutput
+from ..core.certificates import column_norms, kkt_from_gradient, rounding_free
+from ..core.losses import huber_psi, soft_threshold
+from .problem import (
+    ARMIJO,
+    DIRECT_GRAM,
+    DRIFT,
+    EIG_CUT,
+    LM,
+    MAX_STEP,
+    UPDATE_ROWS,
+    Prepared,
+    column_objective,
+)
 
-__all__ = [
-    "GramCache",
-    "Prepared",
-    "line_search",
-    "newton",
-    "prepare",
-    "row_direction",
-    "solve_newton",
-    "solve_path",
-]
-
-_EIG_CUT = 1e-11  # relative eigenvalue cut of the Newton systems
-_MAX_STEP = 2.0**20  # longest line-search step
-_ARMIJO = 1e-4
-_LM = 1e-2
-_DIRECT_GRAM = 0.5  # form M from the inlier rows when outliers carry this much of a column
-FIRST_STEPS = 25  # the fast path's own Newton run may take 25x newton_steps
-#: Whether the compiled iteration (:mod:`robust_sindy.solvers._kernel`) takes the steps
-#: first, and its step budget per column.
-USE_KERNEL, KERNEL_STEPS = True, 50
-#: The compiled iteration works one column at a time: it is the faster one while a
-#: step's NumPy calls (a fraction of a millisecond) outweigh the passes over the library,
-#: up to about ``m p k`` = 8e5 (measured: 3-4 times faster at m = 1e3, 1.2-1.5 times at
-#: m = 1e4 with p <= 20 and 3 columns, slower beyond); the batched NumPy steps, whose
-#: passes serve every column at once, take the larger problems.
-KERNEL_WORK = 8e5
-
-
-def use_kernel(A, columns: int) -> bool:
-    """Whether :func:`solve_newton` runs the compiled iteration first."""
-    from . import _kernel  # it takes its constants from this module
-
-    m, p = A.shape
-    return (
-        USE_KERNEL
-        and _kernel.usable()
-        and A.theta.flags.c_contiguous
-        and m * p * columns <= KERNEL_WORK
-    )
+__all__ = ["GramCache", "NewtonRun", "line_search", "newton", "row_direction"]
 
 
 #: A column has stalled when its KKT violation has not halved for this many steps while
 #: its objective changed by at most ``_STALL_OBJ`` relative: the floating-point floor.
 _STALL_STEPS, _STALL_OBJ = 5, 1e-12
-
-
-_ROWS = 8192  # rows per chunk where the equilibrated library is formed piecewise
-
-
-class ScaledColumns:
-    """``A = Theta[:, nz] / scale`` as an operator: products and row slices on demand,
-    ``Theta`` never copied (the solvers' extra memory stays a few m x n arrays).
-
-    ``A @ x`` is ``Theta (x / scale)``; ``A.T @ v`` is ``(Theta^T (v c)) / (scale c)``
-    with ``c = 1 / max|Theta|`` (no overflow for a library of order 1e300); ``A[rows]``
-    forms those rows.
-    """
-
-    def __init__(self, theta: np.ndarray, nz: np.ndarray, scale: np.ndarray):
-        self.theta = theta if nz.all() else theta[:, nz]
-        self.scale = scale
-        top = float(np.max(np.abs(self.theta))) if self.theta.size else 1.0
-        self._c = 1.0 / top if 0 < top < np.inf else 1.0
-        self.shape = self.theta.shape
-        self.T = _Transposed(self)
-
-    def __matmul__(self, x):
-        if x.ndim == 1:
-            return self.theta @ (x / self.scale)
-        # Column-major (m, k): every elementwise operation and sum over the samples
-        # then runs along contiguous memory (with few target columns, several times
-        # faster than along rows of length k).
-        return ((x / self.scale[:, None]).T @ self.theta.T).T
-
-    def __getitem__(self, rows):
-        return self.theta[rows] / self.scale
-
-    def gram(self) -> np.ndarray:
-        """``A^T A``, from row chunks of ``A``."""
-        G = np.zeros((self.shape[1], self.shape[1]))
-        for lo in range(0, self.shape[0], _ROWS):
-            block = self[lo : lo + _ROWS]
-            G += block.T @ block
-        return G
-
-
-class _Transposed:
-    def __init__(self, op: ScaledColumns):
-        self.op = op
-
-    def __matmul__(self, v):
-        op = self.op
-        out = op.theta.T @ (v * op._c)
-        return out / ((op.scale * op._c)[:, None] if out.ndim == 2 else op.scale * op._c)
-
-
-@dataclass
-class Prepared:
-    """What the solvers compute from ``Theta`` alone (reusable along a path)."""
-
-    nz: np.ndarray  # nonzero columns of Theta
-    scale: np.ndarray  # their equilibration scales
-    A: ScaledColumns  # Theta[:, nz] / scale, as an operator
-    G: np.ndarray  # A^T A
-    a_norms: np.ndarray
-    lipschitz: float
-    equilibrate: bool
-    kappa: float
-    _factor: tuple | None = None
-
-    def condition(self) -> float:
-        """2-norm condition number of the equilibrated library, from its Gram matrix (whose
-        rounding caps the estimate near ``1e8``: beyond that it is a lower bound)."""
-        w = np.linalg.eigvalsh(self.G) if self.G.size else np.ones(1)
-        return float(np.sqrt(w[-1] / w[0])) if w[0] > 0 else np.inf
-
-    @property
-    def factor(self) -> tuple:
-        """Cholesky factor of ``G + kappa I`` (the ADMM's xi-update), on first use."""
-        if self._factor is None:
-            M = self.G + self.kappa * np.eye(self.G.shape[0])
-            self._factor = scipy.linalg.cho_factor(M, check_finite=False)
-        return self._factor
-
-
-def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
-    """Equilibrate ``theta`` and form its Gram matrix once (pass as ``prepared``)."""
-    if theta.size <= KERNEL_WORK and not theta.flags.c_contiguous:
-        # The compiled iteration reads the library by rows: a small one in another
-        # layout (a selection of columns, theta[:, keep], is column-major) is copied
-        # once, so that the refits of the selection stage run compiled too.
-        theta = np.ascontiguousarray(theta)
-    norms = column_norms(theta)  # no overflow for entries near 1e200
-    nz = norms > 0
-    scale = norms[nz] if equilibrate else np.ones(np.count_nonzero(nz))
-    A = ScaledColumns(theta, nz, scale)
-    G = A.gram()
-    lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny) if G.size else 1.0
-    a_norms = norms[nz] / scale
-    return Prepared(nz, scale, A, G, a_norms, lipschitz, equilibrate, kappa)
-
-
-def solve_sym(M: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """Minimum-norm solution of a symmetric PSD system, eigenvalues below ``1e-11`` of
-    the largest treated as zero (a Cholesky factor of a numerically singular Gram matrix
-    "succeeds" with a tiny pivot and returns a huge, meaningless step)."""
-    w, V = np.linalg.eigh(M)
-    keep = w > _EIG_CUT * max(w[-1], 0.0) if w.size else w.astype(bool)
-    inv = 1.0 / w[keep]
-    return V[:, keep] @ ((V[:, keep].T @ b) * (inv if b.ndim == 1 else inv[:, None]))
 
 
 # ---------------------------------------------------------------------------------------
@@ -300,13 +156,13 @@ def line_search(r, q, x, d, lam, delta, upper: float | None = None) -> float:
     if hit.size == 0:
         # Without a bound: the slope stays negative (the longest step); with one, the
         # accumulated slope fell short of its known sign at ``upper`` by rounding.
-        return _MAX_STEP if upper is None else float(upper)
+        return MAX_STEP if upper is None else float(upper)
     k = hit[0]
     if ca[k] + cb[k] * starts[k] >= 0 or cb[k] <= 0:
         t = starts[k]
     else:
         t = -ca[k] / cb[k]
-    return float(min(max(t, 0.0), _MAX_STEP))
+    return float(min(max(t, 0.0), MAX_STEP))
 
 
 # ---------------------------------------------------------------------------------------
@@ -331,20 +187,12 @@ def inlier_gram(A: np.ndarray, G: np.ndarray, w: np.ndarray) -> np.ndarray:
         for k in range(w.shape[1]):  # one BLAS product per target column
             M[k] = G - (AO * (1.0 - w[down, k, None])).T @ AO
             ratio = np.diag(M[k]) / np.maximum(np.diag(G), np.finfo(float).tiny)
-            direct[k] = np.min(ratio, initial=1.0) <= 1.0 - _DIRECT_GRAM
+            direct[k] = np.min(ratio, initial=1.0) <= 1.0 - DIRECT_GRAM
     for k in np.flatnonzero(direct):
         keep = np.flatnonzero(w[:, k] > 0.0)
         AI = A[keep]
         M[k] = (AI * w[keep, k, None]).T @ AI
     return M
-
-
-#: Rank updates of the inlier Gram matrices: at most this fraction of the samples may
-#: change sides, and the summed squares of the entries of the rows ever added or
-#: removed may reach at most ``_DRIFT`` times the updated diagonal, coordinate by
-#: coordinate (the rounding updates leave is ``eps`` times those sums); otherwise the
-#: matrix is formed afresh.
-_UPDATE_ROWS, _DRIFT = 0.05, 1e4
 
 
 class GramCache:
@@ -353,7 +201,7 @@ class GramCache:
     A step whose inlier set differs from the last one in a few samples updates that
     matrix by those rows (``M + A_in^T A_in - A_out^T A_out``, ``|changed| p^2``)
     instead of forming it from the outliers or the inliers (``|O| p^2`` or
-    ``|I| p^2``); :data:`_DRIFT` bounds the rounding the updates may accumulate.
+    ``|I| p^2``); :data:`DRIFT` bounds the rounding the updates may accumulate.
     """
 
     def __init__(self):
@@ -372,12 +220,12 @@ class GramCache:
             if entry is not None:
                 old, M0, drift = entry
                 changed = np.flatnonzero(inlier[:, c] != old)
-                if changed.size <= _UPDATE_ROWS * m:
+                if changed.size <= UPDATE_ROWS * m:
                     rows = A[changed]
                     sign = np.where(inlier[changed, c], 1.0, -1.0)
                     Mc = M0 + (rows * sign[:, None]).T @ rows
                     drift = drift + np.einsum("ij,ij->j", rows, rows)
-                    if np.all(drift <= _DRIFT * np.diag(Mc)):
+                    if np.all(drift <= DRIFT * np.diag(Mc)):
                         M[c] = Mc
                         self.entries[key] = (inlier[:, c].copy(), Mc, drift)
                         self.updates += 1
@@ -420,7 +268,7 @@ def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
     # Normalised to a unit diagonal maximum: the eigen-solver sees no tiny or huge
     # entries (reweighted steps with delta far below the residuals have weights ~1e-300).
     w, V = np.linalg.eigh(Mm / top[:, None, None])
-    keep = w > _EIG_CUT * np.maximum(w[:, -1:], 0.0)
+    keep = w > EIG_CUT * np.maximum(w[:, -1:], 0.0)
     b = np.where(valid, rhs.T[cols, idx], 0.0)
     c = np.einsum("kji,kj->ki", V, b)
     c = np.where(keep, c / np.where(keep, w * top[:, None], 1.0), 0.0)
@@ -528,15 +376,6 @@ def row_direction(A, w, r, S, x, lam_sigma, delta, mu, fallback):
     return d, bool(not keep.all())
 
 
-def column_objective(r, x, delta, lam):
-    """Objective per column with two m x n temporaries (``huber`` as ``c (r - c / 2)``)."""
-    c = np.clip(r, -delta, delta)
-    tmp = np.multiply(c, 0.5)
-    np.subtract(r, tmp, out=tmp)
-    tmp *= c
-    return tmp.sum(axis=0) + (lam * np.abs(x)).sum(axis=0)
-
-
 def step_lengths(A, r, x, d, g, lam, delta, lipschitz, phi0=None):
     """Step lengths (k,) along ``d`` and the directions actually taken.
 
@@ -549,7 +388,7 @@ def step_lengths(A, r, x, d, g, lam, delta, lipschitz, phi0=None):
     s = np.where(x != 0, np.sign(x), np.sign(d))
     slope0 = (lam * s * d).sum(axis=0) - np.einsum("ij,ij->j", huber_psi(r, delta), q)
     phi0 = column_objective(r, x, delta, lam) if phi0 is None else phi0
-    full = column_objective(r - q, x + d, delta, lam) <= phi0 + _ARMIJO * slope0
+    full = column_objective(r - q, x + d, delta, lam) <= phi0 + ARMIJO * slope0
     t = np.where((slope0 < 0) & full, 1.0, 0.0)
     for k in np.flatnonzero(t == 0.0):  # rare: one column at a time
         if slope0[k] >= 0:
@@ -640,7 +479,7 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
         t, d = step_lengths(A, ra, xa, d, g, la, da, prepared.lipschitz, obj[go])
         # Damping only after a step the objective did not accept in full, relaxed again
         # after full steps (a trust-region-like rule; undamped Newton near the optimum).
-        mu[act] = np.where(t == 1.0, 0.1 * mu[act], np.maximum(10 * mu[act], _LM * kkt[go]))
+        mu[act] = np.where(t == 1.0, 0.1 * mu[act], np.maximum(10 * mu[act], LM * kkt[go]))
         mu[mu < 1e-12] = 0.0
         passes += 1
         moving = t > 0
@@ -678,290 +517,3 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
 # the fast path
 
 
-def _target_scale(y, delta) -> np.ndarray:
-    """Exact per-column rescaling ``y / c``, ``delta / c``, ``lam / c`` (solution
-    ``xi / c``): ``c`` is max|y| when the Huber threshold is larger (the rms of y for the
-    squared loss), else the geometric mean of the threshold and max|y|, so that neither
-    ``y / c`` nor ``delta / c`` leaves the floating-point range (delta from 1e-300 to
-    1e300 times max|y|)."""
-    n = y.shape[1]
-    ymax = np.max(np.abs(y), axis=0) if y.shape[0] else np.zeros(n)
-    with np.errstate(over="ignore", under="ignore"):
-        c = np.where(
-            np.isfinite(delta),
-            np.where(delta >= ymax, ymax, np.sqrt(delta) * np.sqrt(ymax)),
-            column_norms(y) / np.sqrt(max(y.shape[0], 1)),
-        )
-    return np.where((c > 0) & np.isfinite(c), c, 1.0)
-
-
-def solve_newton(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
-    """The fast path: batched Newton on all columns, ADMM for any it cannot certify.
-
-    Takes the options of :func:`robust_sindy.solvers.admm.solve_admm` (the same
-    ``DEFAULT_OPTIONS``).  ``polish=False`` (as in the paper's settings) means no
-    Newton at all: plain ADMM.  Returns a :class:`SolverOutput` in the caller's units;
-    ``info`` has ``newton_steps`` per column, ``passes`` (over ``Theta`` by the Newton
-    run) and ``fallback`` (columns handed to the ADMM).
-    """
-    from .admm import DEFAULT_OPTIONS, solve_admm  # the ADMM warm-starts from here
-
-    opts = {**DEFAULT_OPTIONS, **options}
-    if not opts["polish"]:
-        return solve_admm(theta, y, delta, lam, prepared=prepared, **opts)
-    m, p = theta.shape
-    n = y.shape[1]
-    lam = np.broadcast_to(lam, (p, n)).astype(float)
-    equilibrate, kappa = opts["equilibrate"], opts["kappa"]
-    if prepared is None or prepared.equilibrate != equilibrate or prepared.kappa != kappa:
-        prepared = prepare(theta, equilibrate=equilibrate, kappa=kappa)
-    nz, scale, A = prepared.nz, prepared.scale, prepared.A
-    c = _target_scale(y, delta)
-    ys, ds = np.divide(y, c, out=np.empty(y.shape, order="F")), delta / c  # column-major
-    lam_s = lam[nz] / scale[:, None] / c
-    tol = opts["tol"]
-    messages = [""] * n
-    x = np.zeros((A.shape[1], n))
-    # xi = 0 is optimal iff |A^T psi(y)| <= lam (lam >= lambda_max): exact, one pass.
-    zero = np.all(np.abs(A.T @ huber_psi(ys, ds)) <= lam_s * (1 + 1e-10), axis=0)
-    for k in np.flatnonzero(zero):
-        messages[k] = "zero is optimal (lam >= lambda_max)"
-    todo = np.flatnonzero(~zero)
-    steps = np.zeros(n, dtype=int)
-    converged = zero.copy()
-    stalled = np.zeros(n, dtype=bool)
-    passes = 1
-    if todo.size:
-        warm = opts["warm_start"]
-        if warm is not None:
-            start = warm[0][nz][:, todo] * scale[:, None] / c[todo]
-        else:
-            start = solve_sym(prepared.G, A.T @ ys[:, todo])
-            passes += 1
-        budget = FIRST_STEPS * opts["newton_steps"]
-        y_todo = np.asfortranarray(ys[:, todo])
-        certified = np.zeros(todo.size, dtype=bool)
-        steps_todo = np.zeros(todo.size, dtype=int)
-        kkt_last = np.full(todo.size, np.nan)
-        run_stalled = np.zeros(todo.size, dtype=bool)
-        ran = None
-        if use_kernel(A, todo.size):
-            from . import _kernel
-
-            # The compiled iteration takes the steps; the NumPy one below solves any
-            # column it could not certify, from the same start (the point where the
-            # kernel stopped, on a piece with a singular block, can be a poor one: on
-            # the drone's path it cost the NumPy iteration hundreds of steps).
-            ran = _kernel.newton_kernel(
-                A.theta,
-                A.scale,
-                prepared.G,
-                y_todo,
-                ds[todo],
-                lam_s[:, todo],
-                start,
-                prepared.a_norms,
-                prepared.lipschitz,
-                tol,
-                max_steps=min(budget, KERNEL_STEPS),
-            )
-        if ran is not None:
-            found, status, steps_todo, kernel_passes = ran
-            passes += kernel_passes
-            certified = status == 0
-            x[:, todo[certified]] = found[:, certified]
-        rest = np.flatnonzero(~certified)
-        if rest.size:
-            run = newton(
-                prepared,
-                y_todo[:, rest],
-                ds[todo[rest]],
-                lam_s[:, todo[rest]],
-                start[:, rest],
-                max_steps=budget,
-                tol=tol,
-            )
-            x[:, todo[rest]] = run.x
-            certified[rest], steps_todo[rest] = run.certified, steps_todo[rest] + run.steps
-            kkt_last[rest], run_stalled[rest] = run.kkt, run.stalled
-            passes += run.passes
-        converged[todo], steps[todo], stalled[todo] = certified, steps_todo, run_stalled
-        for i, k in enumerate(todo):
-            if certified[i]:
-                messages[k] = f"certified by the active-set Newton method after {steps[k]} steps"
-            elif run_stalled[i]:
-                messages[k] = (
-                    f"stalled at relative KKT {kkt_last[i]:.1e} after {steps[k]} Newton steps: "
-                    "the objective no longer changes in floating point (an ill-conditioned "
-                    f"library: condition number {prepared.condition():.1e} or more)"
-                )
-    coef = np.zeros((p, n))
-    coef[nz] = x * c / scale[:, None]
-    iterations = np.zeros(n, dtype=int)
-    rho = np.full(n, np.nan)
-    # A threshold below the floating-point resolution of the residuals leaves only
-    # least-absolute-deviation points, whose KKT conditions no method can resolve (only
-    # an exact fit, which Newton certifies at once, could be certified): no fallback.
-    resolution = 16 * (p + 1) * np.finfo(float).eps * (np.max(np.abs(y), axis=0) if m else 0.0)
-    unresolvable = ~converged & (delta < resolution)
-    for k in np.flatnonzero(unresolvable):
-        messages[k] = (
-            f"not certified: delta = {delta[k]:.1e} is below the floating-point resolution "
-            f"of the residuals ({resolution[k]:.1e}), where the Huber fit is a "
-            "least-absolute-deviation fit whose optimality cannot be resolved; returning "
-            "the Newton point"
-        )
-    stalled |= unresolvable
-    # A stall is the floor of the Gram-based steps, not necessarily of the problem: the
-    # ADMM (whose finish restarts from its own iterates) still gets its chance.
-    fallback = ~converged & ~unresolvable
-    if fallback.any():
-        j = np.flatnonzero(fallback)
-        rest = {k: v for k, v in opts.items() if k != "warm_start"}
-        out = solve_admm(
-            theta,
-            y[:, j],
-            delta[j],
-            lam[:, j],
-            prepared=prepared,
-            warm_start=(coef[:, j], None),
-            **rest,
-        )
-        coef[:, j], converged[j], iterations[j] = out.coef, out.converged, out.iterations
-        rho[j] = out.info["rho"]
-        steps[j] += out.info["newton_steps"]
-        for i, k in enumerate(j):
-            messages[k] = f"Newton uncertified after {steps[k]} steps; ADMM: {out.messages[i]}"
-    return SolverOutput(
-        coef=coef,
-        iterations=iterations,
-        converged=converged,
-        messages=messages,
-        info={
-            "newton_steps": steps,
-            "passes": passes,
-            "fallback": fallback,
-            "stalled": stalled,
-            "rho": rho,
-        },
-    )
-
-
-def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
-    """The fast path along a decreasing ``lam`` grid (L, n), every point warm-started.
-
-    The first point is a :func:`solve_newton` fit; from there the compiled iteration
-    (:func:`robust_sindy.solvers._kernel.newton_path_kernel`) walks each column down its
-    grid, every point starting from the last one's solution, the residuals and gradient
-    of its last pass and its inlier Gram matrix (a warm start is otherwise one pass and
-    one Gram matrix more per point).  A point the kernel cannot certify is tried again
-    from the previous point with a fresh Gram matrix, else solved by
-    :func:`solve_newton` as a cold fit (least-squares start; NumPy iteration, then
-    ADMM), and the kernel goes on from there.  Takes the options of :func:`solve_newton` (not
-    ``warm_start``).
-
-    Returns ``(coef, converged, info)``: ``coef`` (L, p, n) in the caller's units,
-    ``converged`` (L, n) the solvers' own verdicts (the caller certifies), ``info``
-    with ``newton_steps`` (L, n), ``passes`` over ``Theta``, ``retried`` (points the
-    kernel certified once more from the previous point) and ``handed_over`` (points
-    solved by :func:`solve_newton` after the first); or ``None``
-    where the compiled iteration does not apply (``polish=False``, a problem too large
-    for it, or Numba unavailable): then the caller solves point by point.
-    """
-    from .admm import DEFAULT_OPTIONS
-
-    opts = {**DEFAULT_OPTIONS, **options, "warm_start": None}
-    A = prepared.A
-    L, n = grid.shape
-    if (
-        not opts["polish"]
-        or prepared.equilibrate != opts["equilibrate"]
-        or prepared.kappa != opts["kappa"]
-        or not use_kernel(A, n)
-    ):
-        return None
-    from . import _kernel
-
-    p = theta.shape[1]
-    nz, scale = np.flatnonzero(prepared.nz), prepared.scale
-    delta = np.broadcast_to(np.asarray(delta, dtype=float), (n,))
-    coef = np.zeros((L, p, n))
-    converged = np.zeros((L, n), dtype=bool)
-    steps = np.zeros((L, n), dtype=int)
-    out = solve_newton(theta, y, delta, grid[0], prepared=prepared, **opts)
-    coef[0], converged[0], steps[0] = out.coef, out.converged, out.info["newton_steps"]
-    passes, handed_over, retried = out.info["passes"], 0, 0
-    c = _target_scale(y, delta)
-    ys, ds = np.divide(y, c, out=np.empty(y.shape, order="F")), delta / c
-    lam_s = grid[:, None, :] / scale[None, :, None] / c[None, None, :]  # (L, p_nz, n)
-    x = coef[0][nz] * scale[:, None] / c
-    first = np.ones(n, dtype=np.int64)
-    budget = min(FIRST_STEPS * opts["newton_steps"], KERNEL_STEPS)
-    while (first < L).any():
-        cols = np.flatnonzero(first < L)
-        ran = _kernel.newton_path_kernel(
-            A.theta,
-            A.scale,
-            prepared.G,
-            ys[:, cols],
-            ds[cols],
-            lam_s[:, :, cols],
-            x[:, cols],
-            first[cols],
-            prepared.a_norms,
-            prepared.lipschitz,
-            opts["tol"],
-            budget,
-        )
-        if ran is None:
-            return None  # Numba cannot compile here: the caller's point-by-point loop
-        found, _, kernel_steps, stop, kernel_passes = ran
-        passes += kernel_passes
-        for a, k in enumerate(cols):
-            done = np.arange(first[k], stop[a])
-            coef[done[:, None], nz[None, :], k] = found[done, :, a] * (c[k] / scale)[None, :]
-            converged[done, k] = True
-            steps[done, k] = kernel_steps[done, a]
-            if stop[a] == L:
-                first[k] = L
-                continue
-            # Once more from the previous point with a fresh Gram matrix (the walk's
-            # updated one can lead a hard point astray), then as a cold fit
-            # (least-squares start): from the previous point the NumPy iteration can
-            # take hundreds of steps on a nearly least-absolute-deviation piece and hand
-            # the point to the ADMM (two such points took 1.07 s of a 1.29 s path on the
-            # screened Lorenz problem of validation/path_cost.py, whose 50 cold fits take
-            # 0.44 s).
-            i = int(stop[a])
-            again = _kernel.newton_kernel(
-                A.theta, A.scale, prepared.G, ys[:, [k]], ds[[k]], lam_s[i][:, [k]],
-                coef[i - 1][nz, k][:, None] * (scale / c[k])[:, None], prepared.a_norms,
-                prepared.lipschitz, opts["tol"], budget,
-            )  # fmt: skip
-            if again is not None:
-                x_again, status_again, steps_again, passes_again = again
-                passes += passes_again
-                if status_again[0] == 0:
-                    coef[i, nz, k] = x_again[:, 0] * c[k] / scale
-                    converged[i, k] = True
-                    steps[i, k] = kernel_steps[i, a] + steps_again[0]
-                    x[:, k] = x_again[:, 0]
-                    first[k] = i + 1
-                    retried += 1
-                    continue
-            one = solve_newton(
-                theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared, **opts
-            )
-            coef[i, :, k], converged[i, k] = one.coef[:, 0], one.converged[0]
-            steps[i, k] = kernel_steps[i, a] + one.info["newton_steps"][0]
-            passes += one.info["passes"]
-            handed_over += 1
-            x[:, k] = coef[i][nz, k] * scale / c[k]
-            first[k] = i + 1
-    info = {
-        "newton_steps": steps,
-        "passes": passes,
-        "retried": retried,
-        "handed_over": handed_over,
-    }
-    return coef, converged, info

@@ -17,7 +17,7 @@ from numbers import Real
 
 import numpy as np
 
-from ._base import SolverOutput
+from .problem import SolverOutput
 
 __all__ = ["SOLVERS", "solve_cvxpy"]
 

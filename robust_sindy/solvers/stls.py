@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ._base import SolverOutput
+from .problem import SolverOutput
 
 __all__ = ["solve_ols", "solve_stls"]
 

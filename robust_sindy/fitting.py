@@ -9,8 +9,9 @@ from numbers import Real
 
 import numpy as np
 
-from ._certificates import certify
-from ._validation import (
+from .core.certificates import certify
+from .core.scaling import robust_scale
+from .core.validation import (
     as_float_array,
     check_coef,
     check_int,
@@ -19,9 +20,19 @@ from ._validation import (
     check_problem,
     loss_delta,
 )
-from .solvers import admm, chunked, newton, reference, stls
+from .solvers import chunked, driver, reference, stls
+from .solvers.problem import DEFAULT_OPTIONS
 
-__all__ = ["METHODS", "ConvergenceWarning", "FitResult", "fit"]
+__all__ = [
+    "HUBER_EFFICIENCY_CONSTANT",
+    "METHODS",
+    "ConvergenceWarning",
+    "FitResult",
+    "auto_delta",
+    "check_huber_method",
+    "fit",
+    "fast_path_options",
+]
 
 METHODS = ("admm", "cvxpy", "stls", "ols")
 #: Relative KKT tolerance of the least-squares certificates (OLS, STLS).
@@ -109,10 +120,12 @@ class FitResult:
         )
 
 
-def _admm_options(options: dict, theta, y, one_d, loss) -> dict:
-    allowed = set(admm.DEFAULT_OPTIONS)
+def fast_path_options(options: dict, theta, y, one_d: bool = False) -> dict:
+    """The fast path's options (``DEFAULT_OPTIONS`` updated by ``options``), checked,
+    with ``warm_start`` as a ``(coef, dual)`` pair for ``theta`` and ``y`` (or None)."""
+    allowed = set(DEFAULT_OPTIONS)
     _reject_unknown(options, allowed, "admm")
-    opts = {**admm.DEFAULT_OPTIONS, **options}
+    opts = {**DEFAULT_OPTIONS, **options}
     for name in ("rho", "kappa", "eps_abs", "eps_rel", "tol", "gap_tol"):
         if name in options:
             check_positive(options[name], name)
@@ -246,8 +259,6 @@ def fit(
     if isinstance(delta, str) and delta == "auto":
         if loss != "huber":
             raise ValueError("delta='auto' applies to loss='huber' only")
-        from .selection import auto_delta  # selection builds on fit
-
         delta = np.atleast_1d(auto_delta(theta, y))
     delta_k = loss_delta(loss, delta, n)
     lam_k = check_lam(lam, theta.shape[1], n, one_d)
@@ -257,9 +268,9 @@ def fit(
     gap_tol = 0.0  # only the fast path also accepts a certified duality gap
     t0 = time.perf_counter()
     if method == "admm":
-        opts = _admm_options(options, theta, y, one_d, loss)
+        opts = fast_path_options(options, theta, y, one_d)
         tol, gap_tol = opts["tol"], opts["gap_tol"]
-        out = newton.solve_newton(theta, y, delta_k, lam_k, **opts)
+        out = driver.solve(theta, y, delta_k, lam_k, **opts)
         solver_name = "newton" if opts["polish"] else "admm"
     elif method == "cvxpy":
         solver_name = "clarabel" if solver is None else solver
@@ -379,7 +390,7 @@ def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResu
             f"(got method={method!r}, loss={loss!r})"
         )
     _reject_unknown(options, {"tol", "max_iter", "progress"}, "admm on Dask arrays")
-    tol = check_positive(options.get("tol", admm.DEFAULT_OPTIONS["tol"]), "tol")
+    tol = check_positive(options.get("tol", DEFAULT_OPTIONS["tol"]), "tol")
     max_iter = check_int(options.get("max_iter", 50), "max_iter", 1)
     theta = da.asarray(theta)
     y = da.asarray(xdot)
@@ -402,7 +413,7 @@ def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResu
     lam_full = np.broadcast_to(lam_k if lam_k.ndim == 2 else lam_k[None, :], (p, n)).copy()
     t0 = time.perf_counter()
     run = chunked.solve_chunked(
-        theta, y, delta_k, lam_full, tol=tol, max_iter=max_iter,
+        theta, y, delta_k, lam_full, lasso=_small_lasso, tol=tol, max_iter=max_iter,
         progress=bool(options.get("progress", False)),
     )  # fmt: skip
     if not run.converged.all():
@@ -440,6 +451,14 @@ def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResu
     )
 
 
+def _small_lasso(design, target, lam) -> np.ndarray:
+    """The in-memory Lasso of a chunked Newton step (uncertified steps are judged by the
+    chunked solver's own certificate)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fit(design, target, loss="squared", lam=lam).coef
+
+
 def _least_squares_kkt(theta, y, coef, method):
     """Relative KKT violation of least squares (``delta = inf``, ``lam = 0``): on all
     columns of ``theta`` for OLS, on each column's support for STLS (its fixed point)."""
@@ -453,3 +472,77 @@ def _least_squares_kkt(theta, y, coef, method):
         if s.any():
             kkt[k] = certify(theta[:, s], y[:, [k]], coef[s][:, [k]], inf[:1], zero[:, :1]).kkt[0]
     return "STLS fixed point", kkt
+
+
+#: Tuning constant of the Huber loss with 95 % efficiency at the Gaussian.
+HUBER_EFFICIENCY_CONSTANT = 1.345
+
+
+def auto_delta(
+    theta,
+    xdot,
+    *,
+    n_iter: int = 5,
+    rtol: float = 1e-2,
+    floor: float = 1e-4,
+    method: str = "admm",
+    **options,
+) -> np.ndarray | float:
+    """Per-column Huber threshold from the residual scale of a robust pilot fit.
+
+    Start from the residuals of ordinary least squares; then repeat up to ``n_iter``
+    times: ``delta = 1.345 * robust_scale(r)``, refit the unpenalised Huber regression
+    (``lam = 0``) with that ``delta``, take its residuals ``r``; stop once ``delta``
+    changes by less than ``rtol`` (relative).
+
+    Parameters
+    ----------
+    theta : array_like, shape (m, p)
+    xdot : array_like, shape (m,) or (m, n)
+    n_iter : int
+        Maximum pilot refits.
+    rtol : float
+        Relative change of ``delta`` that ends the iteration.
+    floor : float
+        ``delta`` is at least ``floor`` times the root mean square of the column.  A
+        column fitted exactly (residuals at rounding level, e.g. an equation of
+        noise-free inputs) has no residual scale to measure; below this floor a smaller
+        ``delta`` changes no decision about gross outliers, and it would turn the pilot
+        into an ill-conditioned least-absolute-deviation fit.
+    method : {"admm", "cvxpy"}
+        Solver of the pilot fits.
+    **options
+        Solver options of the pilot fits (see :func:`robust_sindy.fit`).
+
+    Returns
+    -------
+    ndarray (n,), or float when ``xdot`` is 1-D.
+    """
+    theta, y, one_d = check_problem(theta, xdot)
+    n_iter = check_int(n_iter, "n_iter", 1)
+    if method not in ("admm", "cvxpy"):
+        raise ValueError(f"method must be 'admm' or 'cvxpy' for the pilot fit; got {method!r}")
+    lower = floor * np.sqrt(np.mean(y**2, axis=0))
+    lower = np.where(lower > 0, lower, 1.0)
+    residual = y - theta @ np.linalg.lstsq(theta, y, rcond=None)[0]
+    delta = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(residual), lower)
+    # Columns already fitted to the floor by least squares have nothing to refine.
+    todo = np.flatnonzero(delta > lower)
+    for _ in range(n_iter):
+        if todo.size == 0:
+            break
+        res = fit(theta, y[:, todo], method=method, delta=delta[todo], lam=0.0, **options)
+        r = y[:, todo] - theta @ res.coef
+        new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(r), lower[todo])
+        change = np.abs(new - delta[todo]) / delta[todo]
+        delta[todo] = new
+        todo = todo[change >= rtol]
+    return float(delta[0]) if one_d else delta
+
+
+def check_huber_method(method: str, what: str) -> str:
+    """``method`` if it is a Huber method ("admm" or "cvxpy"), else a ``ValueError``
+    naming ``what`` it was for."""
+    if method not in ("admm", "cvxpy"):
+        raise ValueError(f"method must be 'admm' or 'cvxpy' for {what}; got {method!r}")
+    return method

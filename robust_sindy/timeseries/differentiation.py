@@ -16,10 +16,11 @@ from __future__ import annotations
 import numpy as np
 import scipy.signal
 
-from ._certificates import column_norms
-from ._scaling import robust_scale
-from ._validation import as_float_array, check_int, check_positive
-from .simulate import check_time
+from ..core.certificates import column_norms
+from ..core.scaling import robust_scale
+from ..core.statistics import correlation_time
+from ..core.validation import as_float_array, check_int, check_positive, check_time
+from .temporal import clean_neighbours, loo_predict
 
 __all__ = [
     "HALF_WINDOWS",
@@ -196,7 +197,6 @@ def choose_half_window(
 
     Returns an int array (n,) (a 1-element array for 1-D ``x``).
     """
-    from .selection.screening import _clean_neighbours, _loo_predict
 
     degree = check_int(degree, "degree", 1)
     x, t = _check(x, t, 2)
@@ -220,8 +220,8 @@ def choose_half_window(
         at = at[np.linspace(0, at.size - 1, min(at.size, _SCORED)).round().astype(int)]
         scores = []
         for h in fit_in:
-            nb = _clean_neighbours(~ok, h, at)
-            pred, _ = _loo_predict(x2[:, k], t, nb, degree, at)
+            nb = clean_neighbours(~ok, h, at)
+            pred, _ = loo_predict(x2[:, k], t, nb, degree, at)
             scores.append(float(robust_scale((x2[at, k] - pred)[(nb >= 0).all(axis=1)])))
             if scores[-1] > _STOP * min(scores):
                 break  # the bias dominates: wider windows only predict worse
@@ -266,7 +266,6 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
     (see :func:`choose_half_window`)."""
     import scipy.stats
 
-    from .selection.criteria import correlation_time
 
     m, n = x2.shape
     a = as_float_array(library, "library", (2,))

@@ -17,7 +17,7 @@ import os
 import threading
 from concurrent.futures import ThreadPoolExecutor
 
-from ._blas import one_thread
+from .blas import one_thread
 
 __all__ = ["MAX_THREADS", "map_threads", "threads"]
 

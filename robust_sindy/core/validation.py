@@ -119,3 +119,13 @@ def check_positive(value, name: str, *, upper: float | None = None) -> float:
         bound = f" and < {upper}" if upper is not None else ""
         raise ValueError(f"{name} must be a finite number > 0{bound}; got {value!r}")
     return float(value)
+
+
+def check_time(t, name: str = "t", *, min_length: int = 2) -> np.ndarray:
+    """Return ``t`` as a strictly increasing 1-D float array, or raise naming ``name``."""
+    t = as_float_array(t, name, (1,))
+    if t.size < min_length:
+        raise ValueError(f"{name} must hold at least {min_length} time points; got {t.size}")
+    if np.any(np.diff(t) <= 0):
+        raise ValueError(f"{name} must be strictly increasing")
+    return t

@@ -1,14 +1,14 @@
 """Compiled local fits of the temporal screen (Numba).
 
 :func:`loo_predict` computes the leave-one-out predictions of
-:func:`robust_sindy.selection.screening._loo_predict` sample by sample: each sample's
+:func:`robust_sindy.timeseries.temporal.loo_predict` sample by sample: each sample's
 weights from the normal equations of its own neighbours (a Cholesky factorisation of a
 ``(degree + 1)``-square system), where the NumPy code solves each distinct pattern of
 relative times once and gathers.  Same systems, same ridge; the predictions agree to
 rounding.
 
 :func:`lts_windows` runs, window by window in compiled loops, the concentration steps
-that :func:`robust_sindy.selection.screening._concentrate` runs as array expressions:
+that :func:`robust_sindy.timeseries.temporal._concentrate` runs as array expressions:
 the elemental starts of a window, one concentration step for all of them, the most
 promising kept, the remaining steps for those, and the fitted value at the window's own
 sample of the best.  The arithmetic is the NumPy code's (the same elemental inverses,
@@ -18,7 +18,7 @@ builds ``(windows, starts, samples)`` arrays and makes a few dozen passes over t
 here each window's work stays in a few hundred bytes.
 
 Numba is imported on first use and the compiled code cached on disk
-(:mod:`robust_sindy._compiled`); where it cannot compile, :func:`lts_windows` returns
+(:mod:`robust_sindy.core.compiled`); where it cannot compile, :func:`lts_windows` returns
 ``None`` and the caller's NumPy code does the work.
 """
 
@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from .._compiled import Kernels
+from ..core.compiled import Kernels
 
 __all__ = ["loo_predict", "lts_windows"]
 
@@ -112,7 +112,7 @@ def _cholesky_solve(gram, rhs, low, out):
 def _refit(x, f, V, Pw, p, mask, ridge, coef, k, mom, b, gram, low, z):
     """Least squares of the window ``x[f : f + w]`` on the rows ``V[p]`` in the bits
     of ``mask`` (the Hankel normal equations of
-    :func:`robust_sindy.selection.screening._hankel_solve`), into ``coef[:, k]``;
+    :func:`robust_sindy.timeseries.temporal._hankel_solve`), into ``coef[:, k]``;
     ``mom``, ``b``, ``gram``, ``low`` and ``z`` are work space."""
     w, a = V.shape[1], V.shape[2]
     ne = Pw.shape[2]

@@ -34,8 +34,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from ._losses import huber, huber_psi
-from ._validation import check_coef, check_problem, loss_delta, per_column
+from .losses import huber, huber_psi
+from .validation import check_coef, check_problem, loss_delta, per_column
 
 __all__ = ["duality_gap", "kkt_violation", "objective"]
 

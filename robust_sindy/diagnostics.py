@@ -1,0 +1,690 @@
+"""What a fitted model can and cannot vouch for: its diagnostics and their warnings.
+
+:class:`Diagnostics` gathers what every stage of :class:`~robust_sindy.HuberSINDy`
+measured about the data and the fit; :data:`RULES` is the table of reasons to doubt a
+model, each a (kind, condition, message) rule that reads the diagnostics; a fit raises
+one :class:`IdentificationWarning` per rule that applies.  :func:`diagnose` is the
+stage that computes the diagnostics from the other stages' outcomes.
+
+Read more in the user guide: :doc:`/guide/diagnostics`.
+"""
+
+from __future__ import annotations
+
+import itertools
+import warnings
+from collections.abc import Callable
+from dataclasses import dataclass
+
+import numpy as np
+
+from .fitting import fit
+from .selection.bias import (
+    BIAS_MARGIN,
+    carried_noise,
+    library_noise,
+    residual_noise_factor,
+    state_noise_factors,
+)
+from .selection.criteria import MIN_BIC_MARGIN
+from .selection.path import pilot_budget
+from .selection.refit import one_step_contributions
+from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, VISIBLE, robust_t
+
+__all__ = [
+    "MAX_CONDITION",
+    "MAX_FLAGGED_FRACTION",
+    "MAX_LEFT_OUT",
+    "MAX_LIBRARY_NOISE",
+    "MIN_SAMPLES_PER_TERM",
+    "RULES",
+    "STABILITY_BLOCKS",
+    "STABILITY_TOLERANCE",
+    "Diagnostics",
+    "IdentificationWarning",
+    "Rule",
+    "diagnose",
+    "warn",
+]
+
+#: More flagged samples than this fraction and the screen's verdict is doubtful (and
+#: more samples with unresolved derivatives than this, the sampling is too coarse).
+MAX_FLAGGED_FRACTION = 0.3
+#: More samples left out in all (outliers and unresolved derivatives) than this
+#: fraction, and what is left may not represent the trajectory.
+MAX_LEFT_OUT = 0.5
+#: Fewer kept samples per library term than this and the selection is doubtful.
+MIN_SAMPLES_PER_TERM = 5.0
+#: Condition number of the selected terms (unit-norm columns) beyond which their
+#: coefficients are not identifiable from the data.
+MAX_CONDITION = 1e6
+#: Stability check: the kept samples are cut into this many contiguous blocks in time
+#: and the selected terms refitted with each block left out; a term is unstable when a
+#: refit changes its sign or moves it by more than ``STABILITY_TOLERANCE`` of its value.
+STABILITY_BLOCKS = 4
+STABILITY_TOLERANCE = 0.5
+#: Noise of the library (the states' noise carried through it) relative to its signal
+#: along its least-excited direction beyond which the errors in the variables decide
+#: which terms are selected.
+MAX_LIBRARY_NOISE = 0.15
+
+
+class IdentificationWarning(UserWarning):
+    """The data cannot vouch for the identified model (see ``HuberSINDy.diagnostics_``).
+
+    ``kind`` names the rule of :data:`RULES` that raised it (None when raised elsewhere).
+    """
+
+    def __init__(self, message: str, kind: str | None = None):
+        super().__init__(message)
+        self.kind = kind
+
+
+@dataclass(repr=False)
+class Diagnostics:
+    """What a fitted :class:`HuberSINDy` can and cannot vouch for.
+
+    Attributes
+    ----------
+    n_samples, n_terms : int
+        Samples (all trajectories) and library terms.
+    samples_per_term : float
+        Samples kept after screening per library term.
+    temporal_flagged_entries, temporal_flagged_samples : int
+        Entries (state, sample) the temporal screen flagged, and samples with any.
+    model_flagged_samples : int
+        Samples the model-based screen left out of the fit as outliers.
+    unresolved_samples : int
+        Samples left out of the fit because their estimated derivatives are not
+        resolved by the sampling (``unresolved_``; 0 with measured derivatives).
+    readmitted_samples : int
+        Samples flagged in time whose residuals were fine in every equation (kept).
+    screening_converged : bool
+    screening_restarted : bool
+        Whether the model screen kept another iteration (from every sample, or from a
+        forward search) over the one from the samples the temporal screen left alone
+        (that start had lost the samples that alone excite some library directions,
+        e.g. a fast excursion).
+    flagged_fraction : float
+        Fraction of the samples left out (outliers and unresolved derivatives).  A
+        warning says so when the outliers or the unresolved derivatives are more than
+        ``MAX_FLAGGED_FRACTION`` of the samples, or both together more than
+        ``MAX_LEFT_OUT``.
+    delta_over_scale : ndarray (n,)
+        ``delta_`` divided by the robust residual scale of the screen's pilot.
+    certified : ndarray of bool (n,)
+        Whether the penalised fit of each equation passed its optimality certificate.
+    condition_number : ndarray (n,)
+        Of each equation's selected terms (unit-norm columns, kept samples).
+    library_noise : float
+        The states' noise (measured by the temporal screen, no larger than the
+        residuals allow: see ``noise_factor``) carried through the library, relative to
+        the library's signal, along its least-excited direction (kept samples,
+        standardised columns, first-order propagation); NaN without the screen.  Near
+        or above ``MAX_LIBRARY_NOISE`` the noise in the library columns themselves
+        (errors in the variables, which no loss on the derivatives can remove) is large
+        enough to select spurious terms or bias the coefficients.
+    noise_factor : ndarray (n,)
+        Of the states' noise variance that the temporal screen measured, the share each
+        equation's residuals allow, capped at 1
+        (:func:`robust_sindy.selection.bias.residual_noise_factor`, with the final
+        coefficients): the residuals carry the states' noise through the model whatever
+        else they carry, so a factor below 1 means the screen measured the noise too
+        large (its local polynomials cannot follow states sampled too coarsely, and
+        their truncation error counts as noise).  The errors-in-variables check uses the
+        noise this factor allows.  NaN without the screen.
+    unstable : ndarray of bool (n, p)
+        Selected terms whose coefficient changes sign, or by more than
+        ``STABILITY_TOLERANCE`` of its value, when one of ``STABILITY_BLOCKS``
+        contiguous blocks of the kept samples is left out of the refit: the data do not
+        pin them down (a spurious term, or a true one the data barely excite).
+    bias_ratio : ndarray (n, p)
+        For terms the selection chose but then dropped because their coefficient was
+        within ``BIAS_MARGIN`` times the bias that the noise of the states, through the
+        other selected terms, could give it (errors in the variables, see
+        :mod:`robust_sindy.selection.bias`): the coefficient over that first-order bias when
+        dropped; NaN for every other term (all NaN without the temporal screen or with a
+        fixed ``lam``).  A ratio of at least 1 is a term that the bias alone does not
+        explain, dropped only for want of margin: it may be real, and a warning says so.
+    truncation_ratio : ndarray (n, p)
+        For terms dropped because their coefficient was within ``BIAS_MARGIN`` times the
+        bias that the truncation error of the estimated derivatives gives it (the
+        difference from derivatives of two orders higher, projected on the selected
+        terms, less two of its standard errors; see
+        :func:`robust_sindy.selection.bias.truncation_bias`): the coefficient over that
+        bias when dropped; NaN for every other term (all NaN with measured derivatives,
+        other than the robust differentiation, without the screen or with a fixed
+        ``lam``).  On a coarsely sampled trajectory the truncation error is systematic,
+        and a regression explains it with spurious terms.  A ratio of at least 1 may be
+        a real term dropped for want of margin, and a warning says so.
+    below_floor : ndarray (n, p)
+        Unselected terms whose relative contribution, were they added, lies between
+        ``selection_tol`` and the noise floor ``selection_tol_`` that the library noise
+        raised it to: the floor, not the data, left them out, so they may be real (a
+        warning says so); NaN for every other term.
+    bic_margin : ndarray (n,)
+        Per equation, how much higher the BIC of the best other candidate support
+        scored than the chosen one (``Selection.margin``); ``inf`` when there is no
+        other, NaN with a fixed ``lam`` or ``criterion="cv"``.  Below
+        ``MIN_BIC_MARGIN`` the data do not strongly prefer the chosen support.
+    subset_size : ndarray of int (n,)
+        Besides the ``lam`` path's, the criterion compares the best supports of every
+        size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
+        searched; smaller than the budget allows where the BIC penalty of larger
+        supports alone rules them out).  A larger support was compared with the path's
+        candidates only.
+    from_subsets : ndarray of bool (n,)
+        Equations whose support came from that search: no point of the ``lam`` path
+        proposed it (strongly collinear terms), and ``lam_`` and ``result_`` are those
+        of the best path point.
+    significance : ndarray (n, p)
+        Robust t statistic of every selected term (the coefficient over its sandwich
+        standard error, :func:`robust_sindy.selection.significance.robust_t`); NaN off
+        the support and with a fixed ``lam``.  With estimated derivatives it leaves out
+        the differentiation error, which is systematic, so it overstates how sure the
+        data are.  A selected term below ``significance_level`` is not vouched for by the
+        data (a warning says so).
+    significance_level : float
+        The bar of ``significance``: ``SIGNIFICANCE`` (5) with measured derivatives,
+        ``SIGNIFICANCE_ESTIMATED`` (10) with estimated ones, whose error the statistic
+        leaves out.
+    pruned : ndarray (n, p)
+        The robust t of each term the selection chose but the data did not vouch for
+        (below ``significance_level``), when it was dropped (the weakest first, the
+        rest refitted after each, while another term of the equation reaches
+        ``SIGNIFICANCE_ESTIMATED``; a drop after which none does is undone); NaN for
+        every other term.  A dropped term at
+        ``VISIBLE`` (2) or more may be real: a warning says so.
+    derivative_half_window : ndarray of int (n_states,)
+        Half width, in samples, of the local quartic that estimated each state's
+        derivative (chosen from the data by
+        :func:`~robust_sindy.timeseries.differentiation.choose_half_window`; the widest over the
+        trajectories); 0 where the derivatives were measured or came from another
+        ``differentiation``.
+    aliased : list of str
+        Library terms left out of the selection because they are exact linear
+        combinations of earlier terms on the kept samples (a state that does not move,
+        an exactly conserved quantity:
+        :func:`robust_sindy.selection.aliasing.aliased_columns`); an equation written
+        with them fits equally well, so a warning names them.
+    """
+
+    n_samples: int
+    n_terms: int
+    samples_per_term: float
+    temporal_flagged_entries: int
+    temporal_flagged_samples: int
+    model_flagged_samples: int
+    readmitted_samples: int
+    unresolved_samples: int
+    screening_converged: bool
+    screening_restarted: bool
+    flagged_fraction: float
+    delta_over_scale: np.ndarray
+    certified: np.ndarray
+    condition_number: np.ndarray
+    library_noise: float
+    noise_factor: np.ndarray
+    unstable: np.ndarray
+    bias_ratio: np.ndarray
+    below_floor: np.ndarray
+    bic_margin: np.ndarray
+    truncation_ratio: np.ndarray
+    subset_size: np.ndarray
+    from_subsets: np.ndarray
+    significance: np.ndarray
+    significance_level: float
+    pruned: np.ndarray
+    aliased: list[str]
+    derivative_half_window: np.ndarray
+
+    @property
+    def weak(self) -> np.ndarray:
+        """Selected terms within ``significance_level`` robust standard errors of zero
+        (n, p)."""
+        return np.nan_to_num(self.significance, nan=np.inf) < self.significance_level
+
+    def problems(self) -> list[str]:
+        """One sentence for each reason to doubt the model (empty when there is none)."""
+        return [message for _, message in self.findings()]
+
+    def findings(self) -> list[tuple[str, str]]:
+        """``(kind, sentence)`` for each rule of :data:`RULES` that applies."""
+        out = []
+        for rule in RULES:
+            evidence = rule.condition(self)
+            if evidence is not None and evidence is not False:
+                out.append((rule.kind, rule.message(self, evidence)))
+        return out
+
+    def __repr__(self) -> str:
+        lines = [
+            f"Diagnostics({self.n_samples} samples, {self.n_terms} terms, "
+            f"{self.samples_per_term:.1f} kept samples per term)",
+            f"  temporal screen: {self.temporal_flagged_entries} entries in "
+            f"{self.temporal_flagged_samples} samples",
+            f"  model screen: {self.model_flagged_samples} samples left out, "
+            f"{self.readmitted_samples} readmitted, converged={self.screening_converged}"
+            + (", restarted" if self.screening_restarted else ""),
+            f"  unresolved derivatives: {self.unresolved_samples} samples left out",
+            f"  left out in all: {100 * self.flagged_fraction:.1f} %",
+            f"  certified: {self.certified.tolist()}",
+            f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
+            f"  library noise along its weakest direction: {self.library_noise:.2g}",
+            "  share of the measured state noise the residuals allow: "
+            + np.array2string(self.noise_factor, formatter={"float_kind": "{:.2g}".format}),
+            f"  unstable terms per equation: {self.unstable.sum(axis=1).tolist()}",
+            "  terms dropped as errors-in-variables bias per equation: "
+            f"{np.isfinite(self.bias_ratio).sum(axis=1).tolist()}",
+            "  terms dropped as derivative truncation bias per equation: "
+            f"{np.isfinite(self.truncation_ratio).sum(axis=1).tolist()}",
+            "  terms left out below the noise floor per equation: "
+            f"{np.isfinite(self.below_floor).sum(axis=1).tolist()}",
+            f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}",
+            f"  supports searched exhaustively up to size: {self.subset_size.tolist()}"
+            + (
+                " (chosen from that search: equations "
+                f"{np.flatnonzero(self.from_subsets).tolist()})"
+                if self.from_subsets.any()
+                else ""
+            ),
+            "  smallest robust t per equation: "
+            + np.array2string(_smallest(self.significance), precision=3),
+            "  terms dropped below the significance bar per equation: "
+            f"{np.isfinite(self.pruned).sum(axis=1).tolist()}",
+            f"  aliased terms left out: {', '.join(self.aliased) or 'none'}",
+            "  derivatives: "
+            + (
+                "local quartics, half windows per state "
+                f"{self.derivative_half_window.tolist()} samples"
+                if self.derivative_half_window.any()
+                else "measured (or another differentiation)"
+            ),
+        ]
+        problems = self.problems()
+        lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
+        return "\n".join(lines)
+
+
+def _equations_with(mask: np.ndarray) -> tuple[np.ndarray, str] | None:
+    """The equations (rows of ``mask``, (n, p)) with any term set, and how many each
+    has; None when there is none."""
+    rows = np.flatnonzero(mask.any(axis=1))
+    if rows.size == 0:
+        return None
+    return rows, ", ".join(str(int(c)) for c in mask[rows].sum(axis=1))
+
+
+def _smallest(values: np.ndarray) -> np.ndarray:
+    """Per row the smallest finite value (NaN for a row with none)."""
+    finite = np.isfinite(values)
+    low = np.min(np.where(finite, values, np.inf), axis=1)
+    return np.where(finite.any(axis=1), low, np.nan)
+
+
+@dataclass(frozen=True)
+class Rule:
+    """A reason to doubt a model: ``condition(diagnostics)`` returns the evidence (None
+    or False when the rule does not apply) and ``message(diagnostics, evidence)`` the
+    sentence that says so."""
+
+    kind: str
+    condition: Callable
+    message: Callable
+
+
+def _outliers(d) -> float:
+    return d.flagged_fraction - d.unresolved_samples / max(d.n_samples, 1)
+
+
+def _unresolved(d) -> float:
+    return d.unresolved_samples / max(d.n_samples, 1)
+
+
+def _bias_rule(kind: str, attribute: str, source: str, advice: str) -> Rule:
+    return Rule(
+        kind,
+        lambda d: _equations_with(np.nan_to_num(getattr(d, attribute)) >= 1.0),
+        lambda d, e: (
+            f"equations {e[0].tolist()}: {e[1]} terms were dropped because they lie within "
+            f"{BIAS_MARGIN:g} times the bias that {source}, yet exceed that bias: they may "
+            f"be real, and these data cannot decide (see diagnostics_.{attribute}); "
+            f"{advice} would"
+        ),
+    )
+
+
+def _weak_message(d, e) -> str:
+    rows, counts = e
+    low = ", ".join(f"{v:.2g}" for v in _smallest(d.significance)[rows])
+    return (
+        f"equations {rows.tolist()}: {counts} selected terms are within "
+        f"{d.significance_level:g} standard errors of zero (smallest robust t "
+        f"{low}): the data do not vouch for them"
+        + (
+            ""
+            if d.significance_level <= SIGNIFICANCE
+            else f" (the bar is {d.significance_level:g}, not {SIGNIFICANCE:g}, "
+            "because the statistic leaves out the error of estimated derivatives)"
+        )
+        + "; see diagnostics_.significance, and try more data or measured derivatives"
+    )
+
+
+def _pruned_message(d, e) -> str:
+    seen, counts = e
+    advice = "measured derivatives, " if d.significance_level > SIGNIFICANCE else ""
+    high = ", ".join(f"{v:.2g}" for v in np.nanmax(d.pruned[seen], axis=1))
+    return (
+        f"equations {seen.tolist()}: {counts} selected terms were dropped because "
+        f"their robust t was below {d.significance_level:g} (the bar for the "
+        f"selected terms), yet at least {VISIBLE:g} (largest {high}): they may be "
+        f"real, and these data cannot decide (see diagnostics_.pruned); {advice}"
+        "more data or less noisy states would"
+    )
+
+
+#: The reasons to doubt a model, in the order their warnings are raised.
+RULES: tuple[Rule, ...] = (
+    Rule(
+        "few samples per term",
+        lambda d: d.samples_per_term < MIN_SAMPLES_PER_TERM,
+        lambda d, _: (
+            f"only {d.samples_per_term:.1f} samples per library term were fitted: the "
+            "selected terms are not reliable; use more data or a smaller library"
+        ),
+    ),
+    Rule(
+        "screen not converged",
+        lambda d: not d.screening_converged,
+        lambda d, _: (
+            "the model-based screen did not converge (its flags kept changing): the "
+            "samples left out may be wrong; inspect screened_ and screening_"
+        ),
+    ),
+    Rule(
+        "many outliers",
+        lambda d: _outliers(d) > MAX_FLAGGED_FRACTION,
+        lambda d, _: (
+            f"{100 * _outliers(d):.0f} % of the samples were flagged as outliers: either "
+            "the data are mostly corrupted or the library cannot describe them; check "
+            "the library and the data (screened_)"
+        ),
+    ),
+    Rule(
+        "unresolved derivatives",
+        lambda d: _unresolved(d) > MAX_FLAGGED_FRACTION,
+        lambda d, _: (
+            f"at {100 * _unresolved(d):.0f} % of the samples the estimated derivatives are "
+            "not resolved: they differ from those of a higher-order local fit by more "
+            "than the noise explains (a trajectory sampled too coarsely for its fastest "
+            "excursions, or errors in the states the temporal screen left unflagged); "
+            "they were left out (unresolved_); sample faster, measure x_dot, or check "
+            "the states"
+        ),
+    ),
+    Rule(
+        "many samples left out",
+        lambda d: (
+            max(_outliers(d), _unresolved(d)) <= MAX_FLAGGED_FRACTION
+            and d.flagged_fraction > MAX_LEFT_OUT
+        ),
+        lambda d, _: (
+            f"{100 * d.flagged_fraction:.0f} % of the samples were left out of the "
+            f"fit ({100 * _outliers(d):.0f} % flagged as outliers, "
+            f"{100 * _unresolved(d):.0f} % with unresolved derivatives): what is left may "
+            "not excite every term; check the data (screened_, unresolved_), and measure "
+            "x_dot or sample faster"
+        ),
+    ),
+    Rule(
+        "aliased terms",
+        lambda d: bool(d.aliased),
+        lambda d, _: (
+            f"the library terms {', '.join(d.aliased)} are exact linear combinations "
+            "of earlier terms on these data (a state that does not move, or an exactly "
+            "conserved quantity): they were left out of the selection, and the data "
+            "cannot tell an equation written with them from the one found; see "
+            "diagnostics_.aliased, and vary that state if its terms matter"
+        ),
+    ),
+    Rule(
+        "not certified",
+        lambda d: not d.certified.all(),
+        lambda d, _: (
+            f"equations {np.flatnonzero(~d.certified).tolist()} were not certified "
+            "optimal (see result_)"
+        ),
+    ),
+    Rule(
+        "collinear terms",
+        lambda d: np.flatnonzero(d.condition_number > MAX_CONDITION).tolist() or None,
+        lambda d, bad: (
+            f"equations {bad}: the selected terms are nearly collinear on this data "
+            "(condition numbers "
+            + ", ".join(f"{c:.1e}" for c in d.condition_number[bad])
+            + "); their coefficients are not identifiable from it. Use a longer or more "
+            "exciting trajectory"
+        ),
+    ),
+    Rule(
+        "noisy library",
+        lambda d: d.library_noise > MAX_LIBRARY_NOISE,
+        lambda d, _: (
+            f"the noise of the states, carried through the library, is "
+            f"{100 * d.library_noise:.0f} % of the library's signal along its "
+            "least-excited direction: terms that differ along it cannot be told apart "
+            "(errors in the variables, which measured derivatives do not remove), so "
+            "the support and coefficients may be wrong. Use less noisy states, a longer "
+            "or more exciting trajectory, or a smaller library"
+        ),
+    ),
+    Rule(
+        "unstable terms",
+        lambda d: _equations_with(d.unstable),
+        lambda d, e: (
+            f"equations {e[0].tolist()}: {e[1]} selected terms change sign or by more "
+            f"than {100 * STABILITY_TOLERANCE:.0f} % when a quarter of the data is left "
+            "out: the support is not reliably identified from these data (noise too "
+            "large for the library, or terms the trajectory barely excites); see "
+            "diagnostics_.unstable, and try more data, measured derivatives or a "
+            "smaller library"
+        ),
+    ),
+    _bias_rule(
+        "errors-in-variables drops",
+        "bias_ratio",
+        "the noise of the states gives them through the other terms (errors in the "
+        "variables)",
+        "less noisy states, a longer trajectory or a smaller library",
+    ),
+    _bias_rule(
+        "truncation drops",
+        "truncation_ratio",
+        "the truncation error of the estimated derivatives gives them (measured against "
+        "derivatives of higher order: the sampling does not fully resolve the "
+        "trajectory)",
+        "faster sampling or measured derivatives",
+    ),
+    Rule(
+        "below the noise floor",
+        lambda d: _equations_with(np.isfinite(d.below_floor)),
+        lambda d, e: (
+            f"equations {e[0].tolist()}: {e[1]} terms left out would contribute more "
+            "than selection_tol but less than the noise of the library columns "
+            "(selection_tol_): the noise, not the data, decided them, and they may be "
+            "real (see diagnostics_.below_floor); less noisy states or a smaller "
+            "library would decide"
+        ),
+    ),
+    Rule("weak terms", lambda d: _equations_with(d.weak), _weak_message),
+    Rule(
+        "pruned terms",
+        lambda d: _equations_with(np.nan_to_num(d.pruned) >= VISIBLE),
+        _pruned_message,
+    ),
+    Rule(
+        "close runner-up",
+        lambda d: np.flatnonzero(d.bic_margin < MIN_BIC_MARGIN).tolist() or None,
+        lambda d, close: (
+            f"equations {close}: another support scored within {MIN_BIC_MARGIN:g} of the "
+            "chosen one's BIC (differences "
+            + ", ".join(f"{v:.1f}" for v in d.bic_margin[close])
+            + "): the data do not strongly prefer the selected terms; compare the "
+            "candidates (selection_.candidates and selection_.scores on the path, "
+            "selection_.subsets and selection_.subset_scores), and try more data or "
+            "measured derivatives"
+        ),
+    ),
+)
+
+
+def warn(diagnostics: Diagnostics, stacklevel: int = 3) -> None:
+    """One :class:`IdentificationWarning` per rule that applies (``stacklevel`` counted
+    from the caller)."""
+    for kind, message in diagnostics.findings():
+        warnings.warn(IdentificationWarning(message, kind), stacklevel=stacklevel)
+
+
+def stability(kept_theta_s, kept_y_s, coef_s, delta_s, method: str) -> np.ndarray:
+    """Selected terms (n, p) that leaving out one of ``STABILITY_BLOCKS`` contiguous
+    blocks of the kept samples changes (sign, or by more than ``STABILITY_TOLERANCE`` of
+    the value) in an unpenalised Huber refit of the standardised problem; ``coef_s``
+    (p, n) and ``delta_s`` (n,) standardised."""
+    unstable = np.zeros(coef_s.shape, dtype=bool)
+    m = kept_theta_s.shape[0]
+    edges = np.linspace(0, m, STABILITY_BLOCKS + 1).round().astype(int)
+    for k in range(coef_s.shape[1]):
+        sel = np.flatnonzero(coef_s[:, k])
+        if sel.size == 0 or m < STABILITY_BLOCKS * (sel.size + 2):
+            continue
+        ref = coef_s[sel, k]
+        for a, b in itertools.pairwise(edges):
+            rows = np.r_[0:a, b:m]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore")
+                c = fit(
+                    kept_theta_s[rows][:, sel],
+                    kept_y_s[rows, k],
+                    method,
+                    delta_s[k],
+                    0.0,
+                    **pilot_budget(method),
+                )
+            c = c.coef.ravel()
+            unstable[sel, k] |= (np.sign(c) != np.sign(ref)) | (
+                np.abs(c - ref) > STABILITY_TOLERANCE * np.abs(ref)
+            )
+    return unstable.T
+
+
+def _condition_numbers(theta_kept, coef) -> np.ndarray:
+    """Of each equation's selected terms (unit-norm columns), ``coef`` (n, p)."""
+    cond = np.ones(coef.shape[0])
+    for k, row in enumerate(coef):
+        keep = row != 0
+        if keep.sum() >= 2:
+            a = theta_kept[:, keep]
+            cond[k] = np.linalg.cond(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300))
+    return cond
+
+
+def diagnose(
+    *,
+    kept,
+    floor,
+    choice,
+    fitted,
+    final,
+    rows,
+    entry_flags,
+    deriv,
+    feature_names,
+    selection_tol: float,
+    method: str,
+) -> Diagnostics:
+    """The diagnostics of a fit from its stages' outcomes: the kept problem
+    (:class:`~robust_sindy.selection.problem.Problem`), the noise floor, the choice of
+    ``delta`` and ``lam``, the penalised fit, the final selection, the row screen, the
+    temporal screen's entry flags, the derivatives, the library's feature names, the
+    ``selection_tol`` given and the Huber ``method``.
+
+    Besides what the stages recorded, it measures: the share of the state noise each
+    equation's residuals allow and the library noise with each state's noise so
+    reduced; the terms left out below the raised noise floor; the robust t of every
+    selected term; the terms that leaving out a block of the data changes; the condition
+    number of each equation's selected terms."""
+    coef = final.coef
+    n = coef.shape[1]
+    scaler, th, yk, noise = kept.scaler, floor.design, kept.y_s, kept.noise
+    delta = fitted.result.delta
+    delta_s = kept.delta_standard(delta)
+    selection = choice.selection
+    standard = scaler.coef_to_standard(coef)
+    noise_factor = np.full(n, np.nan)
+    allowed = floor.library_noise[1]
+    if selection is not None and noise is not None:
+        for k in range(n):
+            c = standard[:, k]
+            noise_factor[k] = residual_noise_factor(yk[:, k] - th @ c, carried_noise(noise, c))
+        state = state_noise_factors(noise, standard, noise_factor)
+        if np.any(state < 1):
+            reduced = [np.sqrt(f) * a for f, a in zip(state, noise, strict=True)]
+            allowed = library_noise(reduced, th)[1]
+    below = np.full(coef.shape, np.nan)
+    if selection is not None and floor.selection_tol > selection_tol:
+        # Terms left out that the raised noise floor, not the data, decided about.
+        contrib = one_step_contributions(th, yk, standard, delta_s)
+        inside = (contrib >= selection_tol) & (contrib < floor.selection_tol)
+        below[inside] = contrib[inside]
+    tstat = np.full(coef.shape, np.nan)
+    if selection is not None:
+        tstat = robust_t(th, yk, standard, delta_s, kept.segments)
+    keep, screening = rows.keep, rows.screening
+    screened = ~keep
+    m, p = screened.size, th.shape[1]
+    coef_t = coef.T
+    return Diagnostics(
+        n_samples=m,
+        n_terms=p,
+        samples_per_term=float(keep.sum() / p),
+        temporal_flagged_entries=int(entry_flags.sum()),
+        temporal_flagged_samples=int(entry_flags.any(axis=1).sum()),
+        model_flagged_samples=int((screened & ~deriv.unresolved).sum()),
+        readmitted_samples=int((entry_flags.any(axis=1) & keep).sum()),
+        unresolved_samples=int(deriv.unresolved.sum()),
+        screening_converged=True if screening is None else bool(screening.converged),
+        screening_restarted=False if screening is None else bool(screening.restarted),
+        flagged_fraction=float(screened.mean()),
+        delta_over_scale=(
+            np.full(n, np.nan)
+            if screening is None
+            else delta / (screening.scale * scaler.y_scale)
+        ),
+        certified=np.asarray(fitted.result.column_converged, dtype=bool),
+        condition_number=_condition_numbers(kept.theta_s, coef_t),
+        library_noise=allowed,
+        noise_factor=noise_factor,
+        unstable=stability(kept.theta_s, kept.y_s, standard, delta_s, method),
+        bias_ratio=np.ascontiguousarray(final.bias_ratio.T),
+        truncation_ratio=np.ascontiguousarray(final.truncation_ratio.T),
+        below_floor=np.ascontiguousarray(below.T),
+        bic_margin=(
+            selection.margin.copy()
+            if selection is not None and selection.criterion == "bic"
+            else np.full(n, np.nan)
+        ),
+        subset_size=(
+            selection.subset_size.copy() if selection is not None else np.zeros(n, dtype=int)
+        ),
+        from_subsets=(
+            selection.from_subsets.copy()
+            if selection is not None
+            else np.zeros(n, dtype=bool)
+        ),
+        significance=np.ascontiguousarray(tstat.T),
+        significance_level=SIGNIFICANCE if deriv.measured else SIGNIFICANCE_ESTIMATED,
+        pruned=np.ascontiguousarray(final.pruned.T),
+        aliased=[feature_names[j] for j in np.flatnonzero(floor.aliased)],
+        derivative_half_window=deriv.windows.copy(),
+    )

@@ -1,0 +1,605 @@
+"""HuberSINDy: the estimator users fit to time series.
+
+:meth:`HuberSINDy.fit` runs the identification as a sequence of named stages, each a
+function in the module that owns the decision (see :doc:`/guide/index`):
+
+1. :meth:`Trajectories.from_user <robust_sindy.timeseries.trajectories.Trajectories.from_user>`
+   -- the records, checked;
+2. the library, fitted to the states' and controls' names;
+3. :func:`~robust_sindy.timeseries.temporal.temporal_screen` -- entries inconsistent
+   with their neighbours in time;
+4. :func:`~robust_sindy.timeseries.derivatives.derivatives` -- the targets;
+5. :class:`~robust_sindy.selection.problem.Problem` -- standardised columns;
+6. :func:`~robust_sindy.selection.rows.screen_samples` -- samples with gross residuals;
+7. :func:`~robust_sindy.selection.choice.noise_floor` -- aliased terms, the noise floor;
+8. :func:`~robust_sindy.selection.choice.choose_delta_lam` -- delta and lambda;
+9. :func:`~robust_sindy.selection.choice.fit_chosen` -- the certified fit at the choice;
+10. :func:`~robust_sindy.selection.final.final_selection` -- terms the data do not
+    vouch for;
+11. :func:`~robust_sindy.diagnostics.diagnose` -- what the model can vouch for.
+
+Only :meth:`HuberSINDy._set_fitted` writes the fitted attributes.
+"""
+
+from __future__ import annotations
+
+import contextlib
+import warnings
+from dataclasses import dataclass
+from numbers import Integral, Real
+
+import numpy as np
+from sklearn.base import BaseEstimator, clone
+from sklearn.exceptions import NotFittedError
+
+from . import io, outofcore
+from .core.blas import one_thread
+from .core.scaling import Standardizer
+from .core.validation import as_float_array
+from .diagnostics import Diagnostics, IdentificationWarning, diagnose, warn
+from .fitting import METHODS
+from .library import BaseLibrary, PolynomialLibrary
+from .selection.bias import noise_columns
+from .selection.choice import (
+    Choice,
+    Fitted,
+    NoiseFloor,
+    choose_delta_lam,
+    fit_chosen,
+    huber_method,
+    noise_floor,
+)
+from .selection.criteria import CRITERIA
+from .selection.final import FinalSelection, final_selection
+from .selection.problem import Problem
+from .selection.rows import RowScreen, screen_samples
+from .simulate import integrate, simulation_inputs
+from .timeseries.derivatives import (
+    DERIVATIVE_WINDOWS,
+    Derivatives,
+    check_differentiation,
+    derivatives,
+    differentiate,
+)
+from .timeseries.temporal import TemporalScreening, temporal_screen
+from .timeseries.trajectories import Trajectories, is_frame, is_series
+
+__all__ = ["HuberSINDy", "load_model"]
+
+#: Fits with at most this many samples run BLAS on one thread: its products are then
+#: small and the threads' start-up costs more than they save.
+SMALL_PROBLEM_SAMPLES = 10_000
+
+
+def _is_auto(value) -> bool:
+    return isinstance(value, str) and value == "auto"
+
+
+@dataclass(frozen=True)
+class Identification:
+    """Every stage's outcome of one in-memory fit (what :meth:`HuberSINDy._set_fitted`
+    turns into the fitted attributes)."""
+
+    data: Trajectories
+    library: BaseLibrary
+    theta: np.ndarray
+    temporal: TemporalScreening | None
+    deriv: Derivatives
+    problem: Problem
+    rows: RowScreen
+    floor: NoiseFloor
+    choice: Choice
+    fitted: Fitted
+    final: FinalSelection
+    diagnostics: Diagnostics
+
+
+class HuberSINDy(BaseEstimator):
+    """Sparse identification of nonlinear dynamics with the Huber loss.
+
+    Each equation ``k`` solves ``min_xi sum_i H_delta(xdot_ik - Theta_i xi) + lam
+    ||xi||_1`` (:func:`robust_sindy.fit`).  With the defaults nothing needs choosing:
+    outlier samples are screened out (``screen``), ``delta`` is 1.345 robust residual
+    scales, ``lam`` is chosen per equation by a robust BIC over a path with a selection
+    stage at every point, and terms the data do not vouch for are dropped (errors in
+    the variables, truncation of estimated derivatives, robust t below the bar).  Fixed
+    values turn each stage into the plain estimator (``screen=False, delta=1.0,
+    lam=1.0`` is the paper's); ``threshold`` and ``refit`` then act on the result.
+
+    Read more in the user guide: :doc:`/guide/index`.
+
+    Parameters
+    ----------
+    library : BaseLibrary, optional
+        Candidate functions of the states then the controls (default: polynomials of
+        degree 2).  It is cloned and fitted; the fitted copy is ``library_``.
+    delta : float, array_like (n,) or "auto"
+        Huber threshold per equation.
+    lam : float, array_like (n,) or "auto"
+        L1 weight per equation.
+    screen : bool
+        Flag and leave out gross-outlier samples before fitting (temporal screen of the
+        states, row screen of the regression).
+    criterion : {"bic", "cv"}
+        How ``lam="auto"`` picks the point on the path.
+    selection_tol : float
+        Relative contribution ``|xi_j| ||theta_j|| / ||xdot_k||`` below which
+        ``lam="auto"`` drops a term; raised to the relative noise of the noisiest
+        library column (``selection_tol_``), under which a term stays only when its
+        robust t reaches the significance bar.
+    n_lams : int
+        Points on the ``lam`` path.
+    method : {"admm", "cvxpy", "stls", "ols"}
+        Solver passed to :func:`robust_sindy.fit` (``lam="auto"`` needs a Huber
+        method, "admm" or "cvxpy").
+    threshold : float, optional
+        After the fit, set coefficients with ``|xi| < threshold`` to zero.
+    refit : bool
+        Refit each equation on its nonzero terms with ``lam = 0`` (Huber loss, same
+        ``delta``); always done with ``lam="auto"``.
+    differentiation : {"robust", "finite_difference", "savgol"} or callable
+        How derivatives are obtained when ``x_dot`` is not given: ``"robust"`` local
+        quartics of the repaired states, temporal outliers given no weight; the others
+        differentiate the repaired states (the raw ones with ``screen=False``); a
+        callable receives ``(x, t)`` and returns an array shaped like ``x``.
+    solver : str, optional
+        For ``method="cvxpy"``: ``"clarabel"`` or ``"osqp"``.
+    solver_options : dict, optional
+        Keyword options of :func:`robust_sindy.fit` (``max_iter``, ``tol``, ...).
+    progress : bool
+        Show progress bars for the ``lam`` path.
+    derivative_window : {"auto", "fixed"}
+        The window of ``differentiation="robust"``: chosen per state from the data (5
+        to 65 samples), or 5 samples (the fourth-order central difference).
+
+    Attributes
+    ----------
+    coef_ : ndarray, shape (n_targets, n_features)
+        Identified coefficients (rows: equations; the transpose of :func:`fit`'s Xi).
+    support_ : ndarray of bool, shape (n_targets, n_features)
+        ``coef_ != 0``.
+    library_ : BaseLibrary
+        The fitted library; ``feature_names_`` are its input names (states, controls).
+    delta_ : ndarray (n_targets,)
+        The Huber thresholds used.
+    lam_ : ndarray (n_targets,) or (n_features, n_targets)
+        The L1 weights used (with ``lam="auto"`` one weight per coefficient in user
+        units: one per equation on standardised columns, ``selection_.lam``).
+    screened_ : ndarray of bool, shape (n_samples,)
+        Samples left out of the fit: outliers, and the samples of ``unresolved_``.
+    unresolved_ : ndarray of bool, shape (n_samples,)
+        Samples whose estimated derivatives the sampling does not resolve.
+    temporal_ : TemporalScreening or None
+        The temporal screen's flags, repaired states and noise levels.
+    derivative_windows_ : ndarray of int (n_states,)
+        Half width, in samples, of each state's robust derivative window (0 when
+        ``x_dot`` was given or another ``differentiation`` was used).
+    screening_ : Screening or None
+        The row screen's details; its masks cover all samples.
+    standardizer_ : Standardizer
+        The column scales every decision was taken on.
+    library_noise_ : tuple (ndarray (n_features,), float)
+        The states' noise carried through the library, per column and along its
+        least-excited direction; NaN without the screen.
+    library_noise_allowed_ : float
+        The same along the least-excited direction, each state's noise no larger than
+        the residuals allow.
+    selection_tol_ : float
+        The selection threshold used.
+    diagnostics_ : Diagnostics
+        What the data can and cannot vouch for; problems are also raised as
+        :class:`IdentificationWarning`.
+    path_ : Path or None
+        The ``lam`` path of ``lam="auto"``.
+    selection_ : Selection or None
+        Scores and candidates of ``lam="auto"``.
+    outliers_ : ndarray of bool, shape (n_samples, n_targets)
+        Residuals under the final model beyond ``delta_``.
+    result_ : FitResult
+        The penalised fit at ``lam_`` on the kept samples (before threshold and refit).
+    bias_dropped_, bias_ratio_, truncation_ratio_, noise_factor_, below_floor_,
+    significance_, pruned_, aliased_ : ndarray
+        What the final selection dropped and why (see :class:`Diagnostics`).
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from robust_sindy import HuberSINDy
+    >>> from robust_sindy.systems import Lorenz
+    >>> data = Lorenz().generate(t_end=5.0)
+    >>> model = HuberSINDy(threshold=0.05, refit=True)
+    >>> model = model.fit(data.x, data.t, x_dot=data.x_dot, feature_names=["x", "y", "z"])
+    >>> model.print()
+    (x)' = -10.000 x + 10.000 y
+    (y)' = 28.000 x - 1.000 y - 1.000 x*z
+    (z)' = -2.667 z + 1.000 x*y
+    """
+
+    def __init__(
+        self,
+        library: BaseLibrary | None = None,
+        delta="auto",
+        lam="auto",
+        screen: bool = True,
+        criterion: str = "bic",
+        selection_tol: float = 0.005,
+        n_lams: int = 50,
+        method: str = "admm",
+        threshold: float | None = None,
+        refit: bool = False,
+        differentiation="robust",
+        solver: str | None = None,
+        solver_options: dict | None = None,
+        progress: bool = False,
+        derivative_window="auto",
+    ):
+        self.library = library
+        self.delta = delta
+        self.lam = lam
+        self.screen = screen
+        self.criterion = criterion
+        self.selection_tol = selection_tol
+        self.n_lams = n_lams
+        self.method = method
+        self.threshold = threshold
+        self.refit = refit
+        self.differentiation = differentiation
+        self.solver = solver
+        self.solver_options = solver_options
+        self.progress = progress
+        self.derivative_window = derivative_window
+
+    # ------------------------------------------------------------------ fitting
+    def fit(self, x, t=None, x_dot=None, u=None, feature_names=None) -> HuberSINDy:
+        """Identify the equations from one trajectory or a list of trajectories.
+
+        Parameters
+        ----------
+        x : array_like (m, n), or a list of them
+            Measured states.
+        t : float, array_like (m,), or a list of arrays
+            Time step or sample times (strictly increasing); needed unless ``x_dot``
+            is given.
+        x_dot : array_like like ``x``, optional
+            Measured derivatives; computed by ``differentiation`` when omitted.
+        u : array_like (m, q), or a list of them, optional
+            Control inputs (noise-free, sampled with ``x``).
+        feature_names : sequence of str, optional
+            Names of the states then the controls (default: the column names when ``x``
+            and ``u`` are pandas DataFrames, else ``x0, x1, ..., u0, ...``).
+
+        ``x``, ``x_dot`` and ``u`` may be pandas DataFrames (or lists of them): their
+        values are used, the column names of ``x`` and ``u`` name the states and
+        controls, and when ``t`` is omitted a datetime or timedelta index gives the
+        sample times in seconds.  Dask arrays are fitted out of core
+        (:mod:`robust_sindy.outofcore`).
+        """
+        self.check_params()
+        data = Trajectories.from_user(x, t, x_dot, u, feature_names)
+        if data.lazy:
+            return self._fit_out_of_core(data)
+        small = data.n_samples <= SMALL_PROBLEM_SAMPLES
+        with one_thread() if small else contextlib.nullcontext():
+            self._set_fitted(self._identify(data))
+        warn(self.diagnostics_)
+        return self
+
+    def _identify(self, data: Trajectories) -> Identification:
+        """The stages of an in-memory fit (see the module docstring)."""
+        names = data.feature_names()
+        library = clone(self.library) if self.library is not None else PolynomialLibrary()
+        z = data.inputs()
+        theta = library.fit_transform(z, input_names=names)
+        m, p = theta.shape
+        if m <= p:
+            raise ValueError(
+                f"x has {m} samples but the library has {p} terms: at least {p + 1} samples "
+                "are needed to fit it (use a smaller library or more data)"
+            )
+        temporal = temporal_screen(data.x, data.t) if self.screen else None
+        flags = np.zeros((m, data.n_states), dtype=bool) if temporal is None else temporal.flags
+        deriv = derivatives(
+            data, temporal, self.differentiation, self.derivative_window, self.screen, theta
+        )
+        scaler = Standardizer.from_data(theta, deriv.y)
+        noise = noise_columns(library, z, temporal, scaler.theta_scale)
+        problem = Problem(theta, deriv.y, scaler, data.segments, noise)
+        pilot = huber_method(self.method)
+        rows = screen_samples(
+            problem, flags, deriv.unresolved, measured=deriv.measured, method=pilot,
+            screen=self.screen,
+        )  # fmt: skip
+        kept = problem.keep(rows.keep)
+        floor = noise_floor(kept, find_aliases=_is_auto(self.lam), selection_tol=self.selection_tol)
+        options = dict(self.solver_options or {})
+        choice = choose_delta_lam(
+            kept, floor.design, self.delta, self.lam, criterion=self.criterion,
+            n_lams=self.n_lams, selection_tol=self.selection_tol, method=self.method,
+            solver=self.solver, progress=self.progress, options=options,
+        )  # fmt: skip
+        fitted = fit_chosen(
+            kept, choice, method=self.method, solver=self.solver, options=options,
+            threshold=self.threshold, refit=self.refit,
+        )  # fmt: skip
+        if choice.selection is not None:
+            final = final_selection(
+                kept, floor.design, fitted.coef, fitted.result.delta,
+                selection_tol=self.selection_tol, floor_tol=floor.selection_tol,
+                measured=deriv.measured,
+                reference=None if deriv.reference is None else deriv.reference[rows.keep],
+                method=pilot, solver=self.solver, options=options,
+            )  # fmt: skip
+        else:
+            nan = np.full(fitted.coef.shape, np.nan)
+            final = FinalSelection(fitted.coef, nan, nan.copy(), nan.copy())
+        report = diagnose(
+            kept=kept, floor=floor, choice=choice, fitted=fitted, final=final, rows=rows,
+            entry_flags=flags, deriv=deriv, feature_names=library.get_feature_names(),
+            selection_tol=self.selection_tol, method=pilot,
+        )  # fmt: skip
+        return Identification(
+            data, library, theta, temporal, deriv, problem, rows, floor, choice, fitted, final,
+            report,
+        )  # fmt: skip
+
+    def _set_fitted(self, found: Identification) -> None:
+        """The fitted attributes, from the stages' outcomes (the only place they are set)."""
+        choice, fitted, final, report = found.choice, found.fitted, found.final, found.diagnostics
+        self.n_control_features_ = found.data.n_controls
+        self.feature_names_ = found.data.feature_names()
+        self.library_ = found.library
+        self.temporal_ = found.temporal
+        self.derivative_windows_ = found.deriv.windows
+        self.unresolved_ = found.deriv.unresolved
+        self.standardizer_ = found.problem.scaler
+        self.screening_ = found.rows.screening
+        self.screened_ = ~found.rows.keep
+        self.aliased_ = found.floor.aliased
+        self.library_noise_ = found.floor.library_noise
+        self.selection_tol_ = found.floor.selection_tol
+        self.selection_ = choice.selection
+        self.path_ = None if choice.selection is None else choice.selection.path
+        self.result_ = fitted.result
+        self.delta_ = fitted.result.delta
+        self.lam_ = fitted.result.lam
+        self.pruned_ = report.pruned.copy()
+        self.bias_ratio_ = report.bias_ratio.copy()
+        self.bias_dropped_ = np.isfinite(self.bias_ratio_)
+        self.truncation_ratio_ = report.truncation_ratio.copy()
+        self.noise_factor_ = report.noise_factor.copy()
+        self.library_noise_allowed_ = report.library_noise
+        self.below_floor_ = report.below_floor.copy()
+        self.significance_ = report.significance.copy()
+        self.coef_ = np.ascontiguousarray(final.coef.T)
+        self.support_ = self.coef_ != 0
+        self.outliers_ = np.abs(found.problem.y - found.theta @ final.coef) > self.delta_
+        self.diagnostics_ = report
+
+    def _fit_out_of_core(self, data: Trajectories) -> HuberSINDy:
+        """Dask arrays: the model is chosen on a sample in memory
+        (:func:`robust_sindy.outofcore.sample`, all the stages of a fit), then refitted on
+        every sample out of core (:func:`robust_sindy.outofcore.refit`)."""
+        chosen = outofcore.sample(data)
+        self._set_fitted(self._identify(chosen))
+        warn(self.diagnostics_)
+        done = outofcore.refit(self, data, chosen)
+        self.coef_sample_ = self.coef_
+        self.coef_ = np.ascontiguousarray(done.coef.T)
+        self.support_ = self.coef_ != 0
+        self.screened_ = done.screened  # lazy: samples left out of the out-of-core refit
+        self.unresolved_ = done.unresolved  # in memory: one byte per sample
+        self.outliers_ = done.outliers
+        self.diagnostics_.certified = self.diagnostics_.certified & done.certified
+        self.dask_ = done.info
+        for message in done.warnings:
+            warnings.warn(IdentificationWarning(message, "out of core"), stacklevel=3)
+        return self
+
+    def check_params(self) -> None:
+        """Every parameter checked before any work (scikit-learn style: in ``fit``)."""
+        if self.method not in METHODS:
+            raise ValueError(f"method must be one of {METHODS}; got {self.method!r}")
+        if self.library is not None and not isinstance(self.library, BaseLibrary):
+            raise ValueError(
+                "library must be a robust_sindy library (e.g. PolynomialLibrary(degree=2), "
+                f"CustomLibrary(...)) or None; got {self.library!r}"
+            )
+        thr = self.threshold
+        if thr is not None and (
+            isinstance(thr, bool) or not isinstance(thr, Real) or not np.isfinite(thr) or thr < 0
+        ):
+            raise ValueError(f"threshold must be None or a finite number >= 0; got {thr!r}")
+        for name in ("refit", "progress", "screen"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"{name} must be True or False; got {getattr(self, name)!r}")
+        check_differentiation(self.differentiation)
+        if self.derivative_window not in DERIVATIVE_WINDOWS:
+            raise ValueError(
+                f"derivative_window must be one of {DERIVATIVE_WINDOWS}; "
+                f"got {self.derivative_window!r}"
+            )
+        if self.solver_options is not None and not isinstance(self.solver_options, dict):
+            raise ValueError(f"solver_options must be a dict or None; got {self.solver_options!r}")
+        n_lams = self.n_lams
+        if isinstance(n_lams, bool) or not isinstance(n_lams, Integral) or n_lams < 2:
+            raise ValueError(f"n_lams must be an integer >= 2; got {n_lams!r}")
+        if isinstance(self.lam, str) and not _is_auto(self.lam):
+            raise ValueError(f"lam must be a number, one per equation, or 'auto'; got {self.lam!r}")
+        if _is_auto(self.lam):
+            if self.method not in ("admm", "cvxpy"):
+                raise ValueError(
+                    f"lam='auto' needs a Huber method ('admm' or 'cvxpy'); got "
+                    f"method={self.method!r}: pass a number for lam"
+                )
+            if self.criterion not in CRITERIA:
+                raise ValueError(f"criterion must be one of {CRITERIA}; got {self.criterion!r}")
+            tol = self.selection_tol
+            if isinstance(tol, bool) or not np.isscalar(tol) or not np.isfinite(tol) or tol < 0:
+                raise ValueError(f"selection_tol must be a finite number >= 0; got {tol!r}")
+
+    # ------------------------------------------------------------------ using the model
+    def _check_fitted(self, what: str):
+        if not hasattr(self, "coef_"):
+            raise NotFittedError(f"this HuberSINDy is not fitted yet: call fit before {what}")
+
+    def _inputs(self, x, u) -> np.ndarray:
+        q = getattr(self, "n_control_features_", 0)
+        if u is None:
+            if q:
+                raise ValueError(f"u is required: the model was fitted with {q} controls")
+            return x
+        if u.shape[1] != q:
+            raise ValueError(f"u has {u.shape[1]} columns but the model was fitted with {q}")
+        return np.hstack([x, u])
+
+    def save(self, path):
+        """Write the fitted model to ``path`` as portable JSON (:func:`robust_sindy.io.save_model`;
+        read it back with :func:`robust_sindy.load_model`)."""
+        self._check_fitted("save")
+        return io.save_model(self, path)
+
+    def export_rhs(self):
+        """The identified right-hand side as generated numpy code.
+
+        Returns an :class:`~robust_sindy.export.ExportedRHS`.  ``f = model.export_rhs()``;
+        ``f(t, x)`` (or ``f(t, x, u)``) gives the derivatives at ``x`` of shape (n,) or
+        (m, n) without the library's per-call overhead, e.g. for
+        ``scipy.integrate.solve_ivp(f, ...)``; ``f.source`` is the code, ``f.write(path)``
+        saves it as a module that needs only numpy.
+        """
+        from .export import ExportedRHS
+
+        self._check_fitted("export_rhs")
+        n = self.coef_.shape[0]
+        return ExportedRHS(
+            self.library_, self.coef_, self.feature_names_[:n], self.n_control_features_
+        )
+
+    def to_sympy(self) -> list:
+        """The right-hand sides as sympy expressions, one per state (needs sympy).
+
+        Symbols are named by the states and controls (``feature_names_``); library
+        functions given as Python callables appear as undefined sympy functions.
+        """
+        from .export import to_sympy
+
+        self._check_fitted("to_sympy")
+        return to_sympy(self.library_, self.coef_, self.library_.input_names_)
+
+    def get_feature_names(self) -> list[str]:
+        """Names of the library features (columns of ``coef_``)."""
+        self._check_fitted("get_feature_names")
+        return self.library_.get_feature_names()
+
+    def equations(self, precision: int = 3) -> list[str]:
+        """The right-hand sides as text, one per state, zero terms left out."""
+        self._check_fitted("equations")
+        names = self.get_feature_names()
+        out = []
+        for row in self.coef_:
+            terms = []
+            for c, name in zip(row, names, strict=True):
+                if c == 0:
+                    continue
+                val = f"{abs(c):.{precision}f}"
+                sign = "-" if c < 0 else "+"
+                term = val if name == "1" else f"{val} {name}"
+                if not terms:
+                    terms.append(term if sign == "+" else f"-{term}")
+                else:
+                    terms.append(f"{sign} {term}")
+            out.append(" ".join(terms) if terms else f"{0:.{precision}f}")
+        return out
+
+    def print(self, precision: int = 3) -> None:
+        """Print ``(x)' = ...`` for every state."""
+        self._check_fitted("print")
+        for name, eq in zip(self.feature_names_, self.equations(precision), strict=False):
+            print(f"({name})' = {eq}")
+
+    def predict(self, x, u=None):
+        """Derivatives predicted by the model at states ``x`` (and controls ``u``).
+
+        A pandas DataFrame ``x`` gives a DataFrame with its index and columns named
+        ``(state)'``; arrays give an array.
+        """
+        self._check_fitted("predict")
+        if is_frame(x):
+            frame = x
+            u = u.to_numpy(dtype=float) if is_frame(u) else u
+            out = self.predict(frame.to_numpy(dtype=float), u)
+            names = self.feature_names_[: self.coef_.shape[0]]
+            return type(frame)(out, index=frame.index, columns=[f"({n})'" for n in names])
+        x = as_float_array(x, "x", (1, 2))
+        x = x[:, None] if x.ndim == 1 else x
+        if x.shape[1] != self.coef_.shape[0]:
+            raise ValueError(f"x has {x.shape[1]} columns; the model has {self.coef_.shape[0]}")
+        if u is not None:
+            u = as_float_array(u, "u", (1, 2))
+            u = u[:, None] if u.ndim == 1 else u
+            if u.shape[0] != x.shape[0]:
+                raise ValueError(f"u has {u.shape[0]} samples but x has {x.shape[0]}")
+        return self.library_.transform(self._inputs(x, u)) @ self.coef_.T
+
+    def score(self, x, t=None, x_dot=None, u=None) -> float:
+        """Coefficient of determination R^2 of the predicted derivatives (averaged)."""
+        self._check_fitted("score")
+        data = Trajectories.from_user(x, t, x_dot, u)
+        if data.n_samples < 2:
+            raise ValueError(f"x has {data.n_samples} samples: a score needs at least 2")
+        ds = data.x_dot
+        if ds is None:
+            # The derivatives fit would have computed: windows guarded by the library.
+            ds = [
+                differentiate(
+                    a, ti, self.differentiation, self.derivative_window,
+                    library=self.library_.transform(self._inputs(a, b)),
+                )
+                for (a, b), ti in zip(data.pairs(), data.t, strict=True)
+            ]  # fmt: skip
+        pred = np.vstack([self.predict(a, b) for a, b in data.pairs()])
+        y = np.vstack(ds)
+        ss_res = ((y - pred) ** 2).sum(axis=0)
+        ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
+        return float(np.mean(1.0 - ss_res / np.where(ss_tot > 0, ss_tot, 1.0)))
+
+    def simulate(self, x0, t, u=None, *, as_frame=None, **integrator_kws):
+        """Integrate the identified equations with :func:`scipy.integrate.solve_ivp`.
+
+        ``u`` is a callable of ``t`` or an array sampled on ``t`` (interpolated
+        linearly).  ``integrator_kws`` go to ``solve_ivp`` (default ``method="LSODA"``,
+        ``rtol=1e-10``, ``atol=1e-10``).  Returns the states at ``t``, shape (len(t), n):
+        a pandas DataFrame (index ``t``, columns the state names) when ``as_frame`` is
+        true, or by default when ``x0`` is a pandas Series.  The right-hand side
+        integrated is :meth:`export_rhs`.
+        """
+        self._check_fitted("simulate")
+        if as_frame is None:
+            as_frame = is_series(x0)
+        if is_series(x0):
+            x0 = x0.to_numpy(dtype=float)
+        t, x0, uf = simulation_inputs(x0, t, u, self.coef_.shape[0], self.n_control_features_)
+        f = self.export_rhs()
+        kws = {"method": "LSODA", "rtol": 1e-10, "atol": 1e-10, **integrator_kws}
+        sol = integrate(f, x0, t, uf, kws)
+        if not sol.success:
+            warnings.warn(f"simulate stopped early: {sol.message}", UserWarning, stacklevel=2)
+        out = sol.y.T
+        if as_frame:
+            import pandas as pd
+
+            return pd.DataFrame(out, index=pd.Index(t[: len(out)], name="t"), columns=f.state_names)
+        return out
+
+
+def load_model(path) -> HuberSINDy:
+    """Read a model file written by :meth:`HuberSINDy.save` (:func:`robust_sindy.io.save_model`).
+
+    The returned :class:`HuberSINDy` predicts, prints and simulates like the saved one;
+    its diagnostics are the dict ``diagnostics_summary_``.
+    """
+    saved = io.read_model(path)
+    model = HuberSINDy(library=saved.library, **saved.params)
+    for name, value in saved.fitted.items():
+        setattr(model, name, value)
+    return model

@@ -1,0 +1,223 @@
+"""The final selection and the pruning: terms the data do not vouch for are dropped.
+
+Two stages of :class:`~robust_sindy.HuberSINDy` with ``lam="auto"``, on the certified
+refit of the selected support:
+
+* :func:`final_selection` -- drops, refitting after each drop until none drops
+  anything: the terms below ``selection_tol``; those below the noise floor whose robust
+  t is below the bar; those within ``BIAS_MARGIN`` times the bias that the noise of the
+  states gives them through the other terms (errors in the variables,
+  :mod:`~robust_sindy.selection.bias`); and, with estimated derivatives, those within
+  ``BIAS_MARGIN`` times the bias that the derivatives' truncation error gives them.
+* :func:`prune` -- drops the selected term with the smallest robust t while it is below
+  the bar, per equation, in equations with a term that clears
+  ``SIGNIFICANCE_ESTIMATED``.
+
+Read more in the user guide: :doc:`/guide/final`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+
+from .bias import (
+    carried_noise,
+    drop_biased_terms,
+    first_order_bias,
+    noise_gram,
+    residual_noise_factor,
+    truncation_bias,
+)
+from .path import pilot_budget
+from .problem import Problem
+from .refit import STAGE_ROUNDS, debias
+from .significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t
+
+__all__ = ["FinalSelection", "final_selection", "prune", "significance_bar"]
+
+
+def significance_bar(measured: bool) -> float:
+    """The robust t a selected term must reach: ``SIGNIFICANCE`` with measured
+    derivatives, ``SIGNIFICANCE_ESTIMATED`` with estimated ones (whose systematic error
+    the statistic leaves out)."""
+    return SIGNIFICANCE if measured else SIGNIFICANCE_ESTIMATED
+
+
+@dataclass(frozen=True)
+class FinalSelection:
+    """Outcome of :func:`final_selection` and :func:`prune` (arrays (p, n)).
+
+    Attributes
+    ----------
+    coef : ndarray
+        The coefficients kept (user units).
+    bias_ratio : ndarray
+        Coefficient over its errors-in-variables bias of each term dropped for it.
+    truncation_ratio : ndarray
+        Coefficient over its truncation bias of each term dropped for it.
+    pruned : ndarray
+        Robust t of each term pruned.
+
+    All NaN where nothing was dropped for that reason.
+    """
+
+    coef: np.ndarray
+    bias_ratio: np.ndarray
+    truncation_ratio: np.ndarray
+    pruned: np.ndarray
+
+
+class _Refit:
+    """The debiasing refit of the kept samples (user units) at the chosen ``delta``."""
+
+    def __init__(self, kept: Problem, delta, method, solver, options):
+        self.args = (kept.theta, kept.y)
+        self.delta, self.method, self.solver, self.options = delta, method, solver, options
+
+    def __call__(self, coef):
+        return debias(*self.args, coef, self.delta, self.method, self.solver, self.options)
+
+
+def final_selection(
+    kept: Problem,
+    design: np.ndarray,
+    coef: np.ndarray,
+    delta,
+    *,
+    selection_tol: float,
+    floor_tol: float,
+    measured: bool,
+    reference: np.ndarray | None,
+    method: str,
+    solver: str | None,
+    options: dict,
+) -> FinalSelection:
+    """Both stages on the kept samples (see the module docstring).
+
+    ``design`` is the selection's standardised library, ``coef`` the selected model in
+    user units, ``delta`` the chosen thresholds (user units), ``floor_tol`` the
+    threshold raised to the noise floor, ``reference`` the derivatives of higher order
+    of the kept samples (estimated derivatives; None otherwise), ``method`` the Huber
+    method of the drops.
+    """
+    delta_s = kept.delta_standard(delta)
+    refit = _Refit(kept, delta, method, solver, options)
+    error = None if reference is None else kept.scaler.y(kept.y - reference)
+    bar = significance_bar(measured)
+    coef, ratio, truncation = _drops(
+        kept, design, coef, delta_s, refit, selection_tol, floor_tol, measured, error, bar,
+        method,
+    )  # fmt: skip
+    coef, pruned = prune(kept, design, coef, delta_s, refit, bar)
+    return FinalSelection(coef, ratio, truncation, pruned)
+
+
+def _drops(kept, th, coef, delta_s, refit, tol, floor_tol, measured, error, bar, method):
+    """Drop the terms below ``tol``, and those below ``floor_tol`` whose robust t is below
+    ``bar``, and those within ``BIAS_MARGIN`` of their errors-in-variables bias (with the
+    screen's noise; the signed first-order bias for measured derivatives, its triangle
+    bound for estimated ones), refitting after each, and, with estimated derivatives
+    whose truncation ``error`` (standardised) was measured, those within ``BIAS_MARGIN``
+    of the bias that error gives them, until none drops anything.  Returns the
+    coefficients and the bias ratios of the terms the last two dropped (NaN elsewhere)."""
+    scaler, yk, noise, segments = kept.scaler, kept.y_s, kept.noise, kept.segments
+    col = np.linalg.norm(th, axis=0)[:, None]
+    ynorm = np.maximum(np.linalg.norm(yk, axis=0), np.finfo(float).tiny)
+    gram = None if noise is None else noise_gram(noise)
+    ratio = np.full(coef.shape, np.nan)
+    truncation = np.full(coef.shape, np.nan)
+    # Terms that the errors in the variables, or the truncation error of the
+    # derivatives, could have selected are not identified: each drop records its
+    # ratios in its own array.
+    drops = []
+    if gram is not None:
+
+        def eiv(c, k):
+            # The measured noise, brought down to what the residuals allow.
+            factor = residual_noise_factor(yk[:, k] - th @ c, carried_noise(noise, c))
+            return first_order_bias(th, c, factor * gram, signed=measured)
+
+        drops.append((ratio, dict(gram=None, bias=eiv)))
+    if error is not None:
+
+        def bias(c, k):
+            return truncation_bias(th, error[:, k], c, segments)
+
+        drops.append((truncation, dict(gram=None, bias=bias)))
+    for _ in range(STAGE_ROUNDS):
+        standard = scaler.coef_to_standard(coef)
+        contrib = np.abs(standard) * col / ynorm
+        small = (coef != 0) & (contrib < floor_tol)
+        if small.any():
+            # Under the noise floor, a term stays only when the data vouch for it.
+            tstat = robust_t(th, yk, standard, delta_s, segments)
+            small &= (contrib < tol) | ~(tstat >= bar)
+        if small.any():
+            coef[small] = 0.0
+            coef = refit(coef)
+        changed = bool(small.any())
+        if not drops:
+            break
+        for record, how in drops:
+            _, new = drop_biased_terms(
+                th, yk, scaler.coef_to_standard(coef), delta_s, **how, method=method,
+                **pilot_budget(method),
+            )  # fmt: skip
+            dropped = np.isfinite(new)
+            if dropped.any():
+                record[dropped] = new[dropped]
+                coef[dropped] = 0.0
+                coef = refit(coef)
+                changed = True
+        if not changed:
+            break
+    return coef, ratio, truncation
+
+
+def prune(kept: Problem, th, coef, delta_s, refit, bar):
+    """Drop the selected term with the smallest robust t while it is below ``bar``,
+    per equation, refitting after each round.
+
+    The selection's criterion reads the likelihood as if the residuals were the model's
+    only error; the sandwich statistic also sees the errors it leaves out (noise in the
+    library columns reaching the fit through high-leverage rows, heavy tails, and with
+    estimated derivatives their smooth errors shared with the library), and terms the
+    criterion admits that the data do not vouch for are fitted to those errors.  Only
+    equations with a term at ``SIGNIFICANCE_ESTIMATED`` or more are pruned, and only
+    while they keep one: an equation none of whose terms is that clear is left as
+    selected (the data vouch for no version of it, and a warning says so), and a drop
+    after which no term is that clear any more is undone (the dropped term was carrying
+    the equation).  Returns the coefficients and the t of each dropped term (NaN
+    elsewhere).
+    """
+    scaler, yk, segments = kept.scaler, kept.y_s, kept.segments
+    pruned = np.full(coef.shape, np.nan)
+    cols_all = np.arange(coef.shape[1])
+
+    def t_of(coef):
+        t = robust_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
+        return np.where(coef != 0, np.nan_to_num(t, nan=np.inf), np.inf)
+
+    def vouched(t, coef):
+        return np.where(coef != 0, t, 0.0).max(axis=0) >= SIGNIFICANCE_ESTIMATED
+
+    tstat = t_of(coef)
+    done = np.zeros(coef.shape[1], dtype=bool)
+    for _ in range(coef.shape[0]):
+        weakest = np.argmin(tstat, axis=0)
+        low = tstat[weakest, cols_all] < bar
+        cols = np.flatnonzero(low & vouched(tstat, coef) & ~done)
+        if cols.size == 0:
+            break
+        before, t_before = coef.copy(), tstat
+        pruned[weakest[cols], cols] = tstat[weakest[cols], cols]
+        coef[weakest[cols], cols] = 0.0
+        coef = refit(coef)
+        tstat = t_of(coef)
+        lost = cols[~vouched(tstat, coef)[cols]]
+        coef[:, lost], tstat[:, lost] = before[:, lost], t_before[:, lost]
+        pruned[weakest[lost], lost] = np.nan
+        done[lost] = True
+    return coef, pruned

@@ -1,0 +1,406 @@
+"""The row screen: samples whose residual under a robust pilot is gross in any equation.
+
+:func:`screen_rows` flags whole samples by their residual under an unpenalised Huber
+pilot, fitted on a clean start (the samples the temporal screen left alone), with
+per-equation scales estimated from the inliers.  It flags by residual only, never by
+leverage: a rare excursion that the model fits is the most informative sample, not an
+outlier.  :func:`gross_residuals` is its rule, shared with the out-of-core refit.
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass, replace
+
+import numpy as np
+import scipy.linalg
+
+from ..core.scaling import robust_scale
+from ..core.statistics import SCALE_FLOOR, local_scale
+from ..core.validation import as_float_array, check_int, check_positive, check_problem
+from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fit
+from .bias import carried_noise, residual_noise_factor
+from .path import pilot_budget
+from .problem import Problem
+from ..timeseries.trajectories import segments_of
+
+__all__ = [
+    "GROSS_CUTOFF",
+    "SCALE_WINDOW",
+    "RowScreen",
+    "Screening",
+    "gross_ratio",
+    "screen_rows",
+    "screen_samples",
+]
+
+#: Robust standard deviations beyond which a residual is gross.
+GROSS_CUTOFF = 3.5
+#: Half width (samples) of the window of the residuals' local robust scale.
+SCALE_WINDOW = 25
+
+
+def gross_ratio(r, bound, cutoff: float = GROSS_CUTOFF):
+    """Each sample's largest ``|r|`` (m, n) over ``cutoff`` times its ``bound`` (> 1:
+    gross in some equation).  The rule of the row screen and of the out-of-core refit
+    (NumPy or Dask arrays alike)."""
+    return (abs(r) / (cutoff * bound)).max(axis=1)
+
+
+#: Rounds of the model-based screen in which flags may also be withdrawn.
+_FREE_ROUNDS = 5
+
+
+#: How many times more some library direction must be excited (mean square per sample)
+#: by all the samples than by the start for the iteration from every sample to compete:
+#: a start that lost a fast excursion loses a direction (on the zoo's LiuChen and
+#: AtmosphericRegime: 4e3 to 3e5 times), a start that lost scattered outliers does not
+#: (3 to 25 times with rows or spikes contamination).
+_COMPETE_EXCITATION = 100.0
+
+
+#: Fraction of the samples by which the iteration from every sample must explain more
+#: than the one from the start to replace it (the screen's nominal false-positive
+#: rate: smaller differences are the noise of two fits of the same model).
+_COMPETE_MARGIN = 0.02
+
+
+
+@dataclass(repr=False)
+class Screening:
+    """Outcome of :func:`screen_rows`.
+
+    Attributes
+    ----------
+    outliers : ndarray of bool, shape (m,)
+        Samples flagged as gross outliers (excluded from the fit).
+    scale : ndarray, shape (n,)
+        Robust residual scale per equation on the kept samples.
+    relative_scale : ndarray, shape (n,)
+        ``scale`` divided by the root mean square of the equation's target.
+    start : ndarray of bool, shape (m,)
+        The samples the first pilot was fitted on.
+    rounds : int
+        Pilot refits until the flags stopped changing.
+    converged : bool
+        False when ``max_rounds`` ended the iteration with the flags still changing.
+    restarted : bool
+        True when another iteration (from every sample, or from a forward search)
+        replaced the one from ``start`` (step 4 of :func:`screen_rows`).
+    """
+
+    outliers: np.ndarray
+    scale: np.ndarray
+    relative_scale: np.ndarray
+    start: np.ndarray
+    rounds: int
+    converged: bool
+    restarted: bool = False
+
+    def __repr__(self) -> str:
+        return (
+            f"Screening(flagged {int(self.outliers.sum())} of {self.outliers.size} samples, "
+            f"rounds={self.rounds}, converged={self.converged}, restarted={self.restarted})"
+        )
+
+
+
+def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
+    """Residuals ``r`` (m, n) of a Huber fit on the samples ``keep``, those of the kept
+    inliers (``|r| <= delta``) divided by ``sqrt(1 - h_i)`` (studentised), or by
+    ``1 - h_i`` (deleted: the residual the sample would have if the fit had not seen
+    it) where ``suspect``; ``h_i = theta_i H^+ theta_i^T`` is the sample's leverage,
+    ``H`` the Gram matrix of the inliers.
+
+    A studentised residual of a good sample has the spread of the noise whatever the
+    sample's leverage.  A gross error in the states puts its sample far out in library
+    space, where the fit has nothing else to go by and bends to it (``h_i`` near 1, a
+    small residual, even studentised): a sample with independent evidence against it
+    (the temporal screen flagged it) is vouched for only by a model fitted without it.
+    Deleted residuals for every sample would be too strict where there are few samples
+    per term, whose good samples all have large leverage."""
+    out = r.copy()
+    for k in range(r.shape[1]):
+        inl = keep & (np.abs(r[:, k]) <= delta[k])
+        a = theta[inl]
+        lev = np.einsum("ij,ji->i", a, np.linalg.pinv(a.T @ a, hermitian=True) @ a.T)
+        rest = np.maximum(1.0 - lev, np.finfo(float).eps)
+        out[inl, k] = r[inl, k] / np.where(suspect[inl], rest, np.sqrt(rest))
+    return out
+
+
+
+def _excitation_gain(theta: np.ndarray, start: np.ndarray) -> float:
+    """Largest ratio, over directions ``v`` of the library, of ``|theta v|^2`` per sample
+    on all samples to the same on the ``start`` samples (a generalised eigenvalue;
+    unchanged by rescaling the columns); ``inf`` when the start spans fewer directions."""
+    a = theta[start]
+    g_start = a.T @ a / max(a.shape[0], 1)
+    g_all = theta.T @ theta / theta.shape[0]
+    norms = np.sqrt(np.maximum(np.diag(g_all), np.finfo(float).tiny))
+    g_start, g_all = g_start / np.outer(norms, norms), g_all / np.outer(norms, norms)
+    try:
+        return float(scipy.linalg.eigh(g_all, g_start, eigvals_only=True)[-1])
+    except np.linalg.LinAlgError:
+        return float("inf")
+
+
+
+def _segment_local_scale(r, segments, half, trusted):
+    """Local robust scale of the residuals of the ``trusted`` samples (those the
+    temporal screen left alone) around every sample, per trajectory: residuals that
+    grow along a fast part of the trajectory (state noise carried through a steep
+    right-hand side) raise it, a burst of corrupted samples does not."""
+    out = np.zeros_like(r)
+    for seg in segments:
+        if seg.stop - seg.start > 1:
+            out[seg] = local_scale(np.where(trusted[seg, None], r[seg], np.nan), half)
+    return out
+
+
+
+def screen_rows(
+    theta,
+    xdot,
+    *,
+    start=None,
+    segments=None,
+    cutoff: float = GROSS_CUTOFF,
+    scale_window: int = SCALE_WINDOW,
+    max_rounds: int = 20,
+    method: str = "admm",
+    noise=None,
+) -> Screening:
+    """Flag samples whose residual is gross in any equation of a robust pilot.
+
+    1. Fit an unpenalised Huber pilot (``delta`` by :func:`auto_delta`) on the samples
+       ``start`` (all by default; :class:`~robust_sindy.HuberSINDy` passes the samples
+       the temporal screen left alone);
+    2. measure each equation's robust residual scale ``s_k`` on the kept samples (at
+       least ``1e-4`` of the target's root mean square);
+    3. flag a sample when its residual (for the samples in the fit, studentised by
+       their leverage ``h_i`` among the inliers, ``r_i / sqrt(1 - h_i)``, and deleted,
+       ``r_i / (1 - h_i)``, for those outside ``start``: a gross error far out in
+       library space bends an unpenalised pilot to fit it) is more than ``cutoff``
+       times the larger of
+       ``s_k`` and the local robust scale of the residuals within ``scale_window``
+       samples of the same trajectory (when ``segments`` are given; residuals that grow
+       smoothly along a fast part of the trajectory are not outliers) in any equation;
+       refit the pilot on the kept samples and repeat from 2 until the flags are stable
+       (after five rounds flags are only added, so the iteration cannot oscillate);
+    4. when ``start`` left samples out, the iteration flagged more than 2 % of the
+       samples, and some library direction is excited more than 100 times more (mean
+       square per sample) by all the samples than by the start, iterate again from
+       every sample, and from a forward search (from the kept samples, add the 2 % of
+       the samples with the smallest scaled residuals, refit, repeat until 90 % are in,
+       and keep the set whose model explained most samples); keep the outcome whose
+       model explains (residual within the bound) most samples, if that is more than
+       2 % more than the first, all judged at the smallest of their scales: a start
+       that misses a fast excursion gives a pilot that extrapolates there, a pilot
+       bent by gross errors has a larger scale and explains fewer samples, and the
+       forward search reaches the excursion one step at a time, before the outliers.
+
+    With ``noise`` (the noise of the states carried through the library, one array per
+    state), the bound of a sample is also at least the residual that this noise gives
+    it under the pilot's model, ``sqrt(sum_k (noise_k[i] @ coef_j)^2)``: where the
+    right-hand side is steep (a fast excursion) the noise of good states gives large
+    residuals, which are not gross errors.  That noise is taken no larger than the
+    residuals allow (:func:`~robust_sindy.selection.bias.residual_noise_factor`): a
+    noise level measured too large (states sampled too coarsely for the temporal
+    screen) would excuse gross errors.
+
+    Parameters
+    ----------
+    theta : array_like, shape (m, p)
+    xdot : array_like, shape (m,) or (m, n)
+    start : array_like of bool (m,), optional
+        Samples of the first pilot; the others are suspect (step 3).
+    segments : list of slice, optional
+        The samples of each trajectory, in time order (enables the local scale).
+    cutoff : float
+        Robust standard deviations beyond which a residual is gross.
+    scale_window : int
+    max_rounds : int
+    method : {"admm", "cvxpy"}
+        Solver of the pilot fits.
+    noise : list of array_like (m, p), optional
+        Per state, the first-order noise of every library column at every sample (the
+        state's noise level times the column's derivative by that state).
+
+    Returns
+    -------
+    Screening
+
+    Examples
+    --------
+    >>> import numpy as np
+    >>> from robust_sindy.noise import contaminate
+    >>> from robust_sindy.systems import Lorenz
+    >>> lorenz = Lorenz()
+    >>> data = lorenz.generate()
+    >>> noisy = contaminate(data.x, data.x_dot, rng=np.random.default_rng(0))
+    >>> theta = lorenz.fitted_library().transform(noisy.x)
+    >>> s = screen_rows(theta, noisy.x_dot)
+    >>> int(noisy.outliers.sum()), int((s.outliers & noisy.outliers).sum())
+    (200, 200)
+    """
+    theta, y, _ = check_problem(theta, xdot)
+    cutoff = check_positive(cutoff, "cutoff")
+    half = check_int(scale_window, "scale_window", 1)
+    rounds = check_int(max_rounds, "max_rounds", 1)
+    check_huber_method(method, "the pilot fits")
+    m, p = theta.shape
+    if noise is not None:
+        noise = [as_float_array(a, "noise", (2,)) for a in noise]
+        if any(a.shape != (m, p) for a in noise):
+            raise ValueError(f"noise must be a list of arrays of shape ({m}, {p})")
+    if start is None:
+        keep = np.ones(m, dtype=bool)
+    else:
+        keep = np.asarray(start, dtype=bool).copy()
+        if keep.shape != (m,):
+            raise ValueError(f"start must be a boolean mask of shape ({m},); got {keep.shape}")
+    if keep.sum() < max(2 * p, m // 2):
+        keep = np.ones(m, dtype=bool)  # too little left to fit: start from everything
+    first = keep.copy()
+    rms = np.sqrt(np.mean(y**2, axis=0))
+    rms = np.where(rms > 0, rms, 1.0)
+    local = None if segments is None else (lambda r: _segment_local_scale(r, segments, half, first))
+
+    def bound_of(r, scale, coef):
+        bound = np.broadcast_to(scale, r.shape)
+        if local is not None:
+            bound = np.maximum(bound, local(r))
+        if noise:
+            carried = carried_noise(noise, coef)
+            # No more of the measured noise than the residuals themselves show.
+            factor = [residual_noise_factor(r[:, k], carried[:, k]) for k in range(r.shape[1])]
+            bound = np.maximum(bound, np.sqrt(factor) * carried)
+        return bound
+
+    # The pilots only propose flags: a bounded budget, their certificates not required
+    # (the final fit of the kept samples is certified on its own).
+    budget = pilot_budget(method)
+
+    def pilot(keep):
+        """The unpenalised Huber pilot on ``keep``: coefficients and residuals of every
+        sample, centred on the kept ones' median, those of the kept samples corrected for
+        their leverage (:func:`_leverage_corrected`)."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
+            coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
+        r = y - theta @ coef
+        r = r - np.median(r[keep], axis=0)
+        return coef, _leverage_corrected(theta, r, keep, delta, ~first)
+
+    def scaled(r, scale, coef):
+        """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
+        return gross_ratio(r, bound_of(r, scale, coef), cutoff)
+
+    def iterate(keep):
+        flags, converged, done, scale = None, False, 0, np.zeros(y.shape[1])
+        for done in range(1, rounds + 1):
+            coef, r = pilot(keep)
+            scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), SCALE_FLOOR * rms)
+            new = scaled(r, scale, coef) > 1
+            if flags is not None and done > _FREE_ROUNDS:
+                new |= flags  # past the free rounds flags are only added: no oscillation
+            if flags is not None and np.array_equal(new, flags):
+                converged = True
+                break
+            flags = new
+            keep = ~flags
+            if keep.sum() <= p:
+                break
+        return flags, scale, done, converged, r, coef
+
+    def forward(keep, scale0):
+        """Forward search: grow the kept set from ``keep`` by the excluded samples with
+        the smallest scaled residuals, 2 % of the samples at a time, refitting after
+        each, until 90 % are in; return the samples explained (residual within the
+        bound at ``scale0``) by the step whose model explained most."""
+        keep = keep.copy()
+        step = max(p, int(np.ceil(_COMPETE_MARGIN * m)))
+        best, best_n = keep.copy(), -1
+        for _ in range(50):
+            coef, r = pilot(keep)
+            z = scaled(r, scale0, coef)
+            n_ok = int((z <= 1).sum())
+            if n_ok > best_n:
+                best, best_n = z <= 1, n_ok
+            out = np.flatnonzero(~keep)
+            if out.size == 0 or keep.mean() > 0.9:
+                break
+            keep[out[np.argsort(z[out])[:step]]] = True
+        return best
+
+    flags, scale, done_rounds, converged, r, coef = iterate(keep)
+    restarted = False
+    if (
+        not first.all()
+        and flags.mean() > _COMPETE_MARGIN
+        and _excitation_gain(theta, first) > _COMPETE_EXCITATION
+    ):
+        # The start may have left out the samples that excite some library directions
+        # (a fast excursion the temporal screen could not follow); then its pilot
+        # extrapolates there and keeps flagging good samples.  Two more iterations
+        # compete, one from every sample and one from a forward search that grows the
+        # kept set from the first one's: the one whose model explains most samples at
+        # the smallest of the noise scales wins, by more than 2 % of the samples (a
+        # pilot bent by gross errors has a larger scale and explains fewer).
+        cands = [iterate(np.ones(m, dtype=bool)), iterate(forward(~flags, scale))]
+        common = np.minimum.reduce([scale] + [c[1] for c in cands])
+        explained = [
+            int((scaled(rr, common, cc) <= 1).sum())
+            for rr, cc in [(r, coef)] + [(c[4], c[5]) for c in cands]
+        ]
+        best = int(np.argmax(explained))
+        if best > 0 and explained[best] - explained[0] > _COMPETE_MARGIN * m:
+            flags, scale, done_rounds, converged = cands[best - 1][:4]
+            restarted = True
+    return Screening(flags, scale, scale / rms, first, done_rounds, converged, restarted)
+
+
+@dataclass(frozen=True)
+class RowScreen:
+    """Outcome of :func:`screen_samples`.
+
+    Attributes
+    ----------
+    keep : ndarray of bool (m,)
+        The samples the fit keeps.
+    screening : Screening or None
+        The row screen's details, its masks over all samples (None without the screen).
+    """
+
+    keep: np.ndarray
+    screening: Screening | None
+
+
+def screen_samples(
+    problem: Problem, entry_flags, unresolved, *, measured: bool, method: str, screen: bool
+) -> RowScreen:
+    """The samples to fit: with ``screen``, those whose derivatives are resolved
+    (``unresolved``: estimated derivatives the sampling does not resolve carry a
+    systematic error that the library would explain with spurious terms) and that
+    :func:`screen_rows` keeps, started from the samples without temporally flagged
+    entries (``entry_flags``, m x n).  The state noise carried through the model excuses
+    residuals only with ``measured`` derivatives: estimated ones add their own errors
+    along fast excursions, where the carried noise is largest."""
+    m = problem.shape[0]
+    if not screen:
+        return RowScreen(np.ones(m, dtype=bool), None)
+    keep = ~unresolved
+    noise = problem.noise if measured and problem.noise else None
+    found = screen_rows(
+        problem.theta_s[keep],
+        problem.y_s[keep],
+        start=~entry_flags.any(axis=1)[keep],
+        segments=segments_of(keep, problem.segments),
+        method=method,
+        noise=None if noise is None else [a[keep] for a in noise],
+    )
+    outliers, start = np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
+    outliers[keep], start[keep] = found.outliers, found.start
+    return RowScreen(keep & ~outliers, replace(found, outliers=outliers, start=start))
