@@ -34,7 +34,13 @@ myst_enable_extensions = ["dollarmath", "colon_fence"]
 myst_heading_anchors = 3
 
 autosummary_generate = True
-autodoc_default_options = {"members": True, "inherited-members": False}
+autodoc_default_options = {
+    "members": True,
+    "inherited-members": False,
+    # scikit-learn's metadata-routing methods: theirs, documented there.
+    "exclude-members": "set_fit_request, set_score_request, set_transform_request, "
+    "set_partial_fit_request, set_predict_request, set_output, get_metadata_routing",
+}
 autodoc_member_order = "bysource"
 numpydoc_show_class_members = False
 numpydoc_validation_checks = set()

@@ -9,7 +9,6 @@ reference; least-squares baselines
 (STLS, OLS) and the Lasso (``loss="squared"``) use the same entry point, :func:`fit`.
 """
 
-from ._version import __version__
 from . import (
     datasets,
     export,
@@ -22,19 +21,18 @@ from . import (
     simulate,
     systems,
 )
+from ._version import __version__
 from .core.certificates import duality_gap, kkt_violation, objective
-from .fitting import METHODS, ConvergenceWarning, FitResult, fit
 from .core.losses import huber, huber_prox, huber_psi, soft_threshold
-from .ensemble import EnsembleSINDy
-from .library import ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 from .diagnostics import Diagnostics, IdentificationWarning
+from .ensemble import EnsembleSINDy
 from .estimator import HuberSINDy, load_model
+from .fitting import METHODS, ConvergenceWarning, FitResult, fit
+from .library import ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 from .solvers.problem import PAPER_OPTIONS as PAPER_ADMM_OPTIONS
 from .timeseries import differentiation
 
-
 __all__ = [
-    "__version__",
     "METHODS",
     "PAPER_ADMM_OPTIONS",
     "ConcatLibrary",
@@ -47,6 +45,7 @@ __all__ = [
     "HuberSINDy",
     "IdentificationWarning",
     "PolynomialLibrary",
+    "__version__",
     "datasets",
     "differentiation",
     "duality_gap",

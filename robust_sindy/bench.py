@@ -302,13 +302,9 @@ def load_kernels() -> None:
     global _KERNELS_LOADED
     if _KERNELS_LOADED:
         return
-    from .estimator import HuberSINDy
+    from .compile_kernels import warm_up
 
-    t, x, x_dot = bench_data(300)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore")
-        HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t, x_dot=x_dot)
-        HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t)
+    warm_up()
     _KERNELS_LOADED = True
 
 

@@ -24,7 +24,13 @@ from pathlib import Path
 import numpy as np
 
 from . import reproduce as rp
+from .diagnostics import count_kinds
 from .noise import PLACEMENTS
+
+
+def _progress(args) -> bool:
+    """Progress bars unless ``--quiet``, and on a terminal only (not in a log)."""
+    return not args.quiet and sys.stderr.isatty()
 
 
 def _reproduce(args) -> int:
@@ -48,7 +54,7 @@ def _reproduce_run(args, n_jobs) -> int:
             Parallel(n_jobs=n_jobs, return_as="generator")(tasks),
             total=len(jobs),
             desc="seeds",
-            disable=not sys.stderr.isatty() and args.quiet,
+            disable=True if args.quiet else None,  # None: on a terminal only
         )
     )
     report = [
@@ -101,6 +107,14 @@ def _reproduce_run(args, n_jobs) -> int:
     md = out / ("reproduce.md" if args.system == "all" else f"reproduce_{args.system}.md")
     md.write_text("\n".join(report))
     print(f"wrote {md} and the CSV and PNG files beside it")
+    kinds = [w[1] for r in runs for w in r["warnings"]]
+    if kinds:
+        fits = sum(bool(r["warnings"]) for r in runs)
+        print(
+            f"HuberSINDy() raised {len(kinds)} warnings in {fits} of {len(runs)} fits: "
+            f"{count_kinds(kinds)}; each fit's are in the column 'warnings' of "
+            + ", ".join(str(out / f"reproduce_{s}.csv") for s in systems)
+        )
     return 0
 
 
@@ -115,8 +129,8 @@ def _bench(args) -> int:
         pipe_sizes, path_m = bench.run_pipeline.__defaults__[0], 10_000
     with scheduler(args.scheduler):
         rows = bench.run(sizes, repeats=repeats, skip_after=args.skip_after,
-                         progress=not args.quiet, jobs=-1 if args.scheduler else 1)  # fmt: skip
-    pipelines = bench.run_pipeline(pipe_sizes, repeats=repeats, progress=not args.quiet)
+                         progress=_progress(args), jobs=-1 if args.scheduler else 1)  # fmt: skip
+    pipelines = bench.run_pipeline(pipe_sizes, repeats=repeats, progress=_progress(args))
     cost = bench.path_cost(path_m)
     command = "robust-sindy bench" + (" --quick" if args.quick else "")
     print(bench.table(rows))
@@ -135,14 +149,23 @@ def _zoo(args) -> int:
     with scheduler(args.scheduler):
         if args.quick:
             rows = zoo.run(n_systems=2, seeds=1, families=("clean", "spikes"), n_samples=600,
-                           jobs=jobs, progress=not args.quiet)  # fmt: skip
+                           jobs=jobs, progress=_progress(args))  # fmt: skip
         else:
             rows = zoo.run(n_systems=args.systems, seeds=args.seeds, jobs=jobs,
-                           progress=not args.quiet)  # fmt: skip
+                           progress=_progress(args))  # fmt: skip
     command = "robust-sindy zoo" + (" --quick" if args.quick else f" --seeds {args.seeds}")
     print(zoo.table(zoo.summary(rows)))
     paths = zoo.write(rows, Path(args.out), command)
     print("wrote", ", ".join(str(p) for p in paths))
+    huber = [r for r in rows if r["method"] == "huber"]
+    warned = [r for r in huber if r["warned"]]
+    if warned:
+        print(
+            f"HuberSINDy() warned in {len(warned)} of {len(huber)} cases "
+            f"({sum(not r['exact'] for r in warned)} of its {sum(not r['exact'] for r in huber)} "
+            f"failures, {sum(r['exact'] for r in warned)} right answers); each case's "
+            f"warnings are in the column 'warnings' of {paths[0]}"
+        )
     return 0
 
 
@@ -162,7 +185,7 @@ def _fit(args, parser) -> int:
             derivatives=args.derivatives,
             delta=args.delta,
             lam=args.lam,
-            progress=not args.quiet,
+            progress=_progress(args),
         )
     except fit_command.InputError as exc:
         parser.exit(2, f"robust-sindy fit: error: {exc}\n")

@@ -27,7 +27,7 @@ from .selection.bias import (
     state_noise_factors,
 )
 from .selection.criteria import MIN_BIC_MARGIN
-from .selection.path import pilot_budget
+from .selection.lam_path import pilot_budget
 from .selection.refit import one_step_contributions
 from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, VISIBLE, robust_t
 
@@ -43,7 +43,9 @@ __all__ = [
     "Diagnostics",
     "IdentificationWarning",
     "Rule",
+    "count_kinds",
     "diagnose",
+    "kind_of",
     "warn",
 ]
 
@@ -494,8 +496,7 @@ RULES: tuple[Rule, ...] = (
     _bias_rule(
         "errors-in-variables drops",
         "bias_ratio",
-        "the noise of the states gives them through the other terms (errors in the "
-        "variables)",
+        "the noise of the states gives them through the other terms (errors in the variables)",
         "less noisy states, a longer trajectory or a smaller library",
     ),
     _bias_rule(
@@ -537,6 +538,20 @@ RULES: tuple[Rule, ...] = (
         ),
     ),
 )
+
+
+def kind_of(caught: warnings.WarningMessage) -> str:
+    """The kind of a recorded warning: the rule of an :class:`IdentificationWarning`,
+    else the warning's class name."""
+    return getattr(caught.message, "kind", None) or caught.category.__name__
+
+
+def count_kinds(kinds) -> str:
+    """``"kind (count), ..."`` for a list of warning kinds, the most frequent first."""
+    counts: dict[str, int] = {}
+    for kind in kinds:
+        counts[kind] = counts.get(kind, 0) + 1
+    return ", ".join(f"{k} ({v})" for k, v in sorted(counts.items(), key=lambda kv: -kv[1]))
 
 
 def warn(diagnostics: Diagnostics, stacklevel: int = 3) -> None:
@@ -657,9 +672,7 @@ def diagnose(
         screening_restarted=False if screening is None else bool(screening.restarted),
         flagged_fraction=float(screened.mean()),
         delta_over_scale=(
-            np.full(n, np.nan)
-            if screening is None
-            else delta / (screening.scale * scaler.y_scale)
+            np.full(n, np.nan) if screening is None else delta / (screening.scale * scaler.y_scale)
         ),
         certified=np.asarray(fitted.result.column_converged, dtype=bool),
         condition_number=_condition_numbers(kept.theta_s, coef_t),
@@ -678,9 +691,7 @@ def diagnose(
             selection.subset_size.copy() if selection is not None else np.zeros(n, dtype=int)
         ),
         from_subsets=(
-            selection.from_subsets.copy()
-            if selection is not None
-            else np.zeros(n, dtype=bool)
+            selection.from_subsets.copy() if selection is not None else np.zeros(n, dtype=bool)
         ),
         significance=np.ascontiguousarray(tstat.T),
         significance_level=SIGNIFICANCE if deriv.measured else SIGNIFICANCE_ESTIMATED,

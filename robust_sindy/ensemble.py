@@ -23,10 +23,10 @@ from sklearn.base import BaseEstimator, clone
 from sklearn.exceptions import NotFittedError
 
 from .core.validation import check_int
-from .export import ExportedRHS
-from .library import BaseLibrary, PolynomialLibrary
 from .diagnostics import IdentificationWarning
 from .estimator import HuberSINDy
+from .export import ExportedRHS
+from .library import BaseLibrary, PolynomialLibrary
 from .simulate import integrate, simulation_inputs
 from .timeseries.derivatives import differentiate
 from .timeseries.trajectories import Trajectories

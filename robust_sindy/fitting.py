@@ -30,8 +30,8 @@ __all__ = [
     "FitResult",
     "auto_delta",
     "check_huber_method",
-    "fit",
     "fast_path_options",
+    "fit",
 ]
 
 METHODS = ("admm", "cvxpy", "stls", "ols")

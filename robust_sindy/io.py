@@ -21,7 +21,6 @@ import numpy as np
 from sklearn.exceptions import NotFittedError
 
 from ._version import __version__
-
 from .library import BaseLibrary, ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "SavedModel", "read_model", "save_model"]

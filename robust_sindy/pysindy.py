@@ -21,8 +21,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from .fitting import fit
 from .core.scaling import Standardizer
+from .fitting import fit
 
 try:
     from pysindy.optimizers import BaseOptimizer

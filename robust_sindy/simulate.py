@@ -113,7 +113,6 @@ def simulation_inputs(x0, t, u, n: int, q: int):
     return t, x0, uf
 
 
-
 def integrate(f, x0, t, uf, kws: dict):
     """:func:`scipy.integrate.solve_ivp` of an exported right-hand side ``f`` on ``t``."""
 

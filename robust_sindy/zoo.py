@@ -224,8 +224,8 @@ def _fit_method(method, system, t, x, x_dot, seed=0):
     """Coefficients (p, n) found by ``method`` (``x_dot`` None: from the states);
     ``seed`` seeds the draws of PySINDy's ensembles, which use NumPy's global random
     state (restored afterwards), so that every run of a case gives the same result."""
-    from .library import PolynomialLibrary
     from .estimator import HuberSINDy
+    from .library import PolynomialLibrary
 
     if method == "huber":
         model = HuberSINDy(library=PolynomialLibrary(degree=system.degree))

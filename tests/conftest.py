@@ -2,6 +2,12 @@
 
 from __future__ import annotations
 
+import os
+
+# The tests check what the compiled kernels do: compiled in the test process on first
+# use, not in the background (see robust_sindy.core.compiled).
+os.environ.setdefault("ROBUST_SINDY_KERNELS", "wait")
+
 import numpy as np
 import pytest
 

@@ -8,8 +8,7 @@ import scipy.integrate
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from robust_sindy import HuberSINDy, PolynomialLibrary
-from robust_sindy import IdentificationWarning
+from robust_sindy import HuberSINDy, IdentificationWarning, PolynomialLibrary
 from robust_sindy.selection.aliasing import aliased_columns
 
 

@@ -1,4 +1,4 @@
-"""The house: layers without cycles (the contract in pyproject.toml), public names across modules."""
+"""The house: layers without cycles (pyproject.toml), public names across modules."""
 
 import ast
 import pathlib
@@ -72,7 +72,9 @@ def _private_imports(path: pathlib.Path):
     """The private names (``_name``) a module imports from the package."""
     tree = ast.parse(path.read_text())
     for node in ast.walk(tree):
-        if isinstance(node, ast.ImportFrom) and (node.level or "robust_sindy" in (node.module or "")):
+        if isinstance(node, ast.ImportFrom) and (
+            node.level or "robust_sindy" in (node.module or "")
+        ):
             for alias in node.names:
                 if alias.name.startswith("_") and not alias.name.startswith("__"):
                     yield node.module, alias.name

@@ -6,9 +6,9 @@ import numpy as np
 import pytest
 
 from robust_sindy import HuberSINDy, PolynomialLibrary
+from robust_sindy.systems import Lorenz
 from robust_sindy.timeseries.differentiation import choose_half_window, local_polynomial_derivative
 from robust_sindy.timeseries.temporal import temporal_screen
-from robust_sindy.systems import Lorenz
 
 
 def _sine(per_period, noise, seed=0, m=2000):
@@ -183,7 +183,10 @@ def test_wide_windows_are_fitted_robustly_given_the_noise_scale():
 
 
 def test_higher_order_derivative_has_the_smaller_truncation_error():
-    from robust_sindy.timeseries.differentiation import higher_order_derivative, unresolved_derivatives
+    from robust_sindy.timeseries.differentiation import (
+        higher_order_derivative,
+        unresolved_derivatives,
+    )
 
     t = 0.3 * np.arange(400)  # about 21 samples per period
     x = np.column_stack([np.sin(t), 1e3 * np.cos(0.5 * t)])

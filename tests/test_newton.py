@@ -9,8 +9,7 @@ import pytest
 import robust_sindy as rs
 from robust_sindy.core.losses import huber_psi
 from robust_sindy.selection import lambda_max
-from robust_sindy.solvers import _kernel
-from robust_sindy.solvers import driver
+from robust_sindy.solvers import _kernel, driver
 from robust_sindy.solvers import newton as nw
 from robust_sindy.solvers.problem import prepare
 

@@ -156,8 +156,12 @@ def test_huber_sindy_differentiates_dask_states_chunk_by_chunk(monkeypatch):
     assert np.array_equal(model.diagnostics_.derivative_half_window, half) and half.min() >= 2
     noise = temporal_screen(x[:1500], 0.01 * np.arange(1500)).scale
     whole = differentiate(x, 0.01 * np.arange(len(x)), "robust", half_window=half, scale=noise)
+
+    def chunk(b):
+        return differentiate(b, 0.01 * np.arange(len(b)), "robust", half_window=half, scale=noise)
+
     lazy = da.from_array(x, chunks=700).map_overlap(
-        lambda b: differentiate(b, 0.01 * np.arange(len(b)), "robust", half_window=half, scale=noise),
+        chunk,
         depth={0: model_module.DASK_OVERLAP, 1: 0}, boundary="none", dtype=float,
     ).compute()  # fmt: skip
     close = np.isclose(lazy, whole, rtol=1e-6, atol=1e-6).all(axis=1)

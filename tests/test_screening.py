@@ -5,13 +5,12 @@ import warnings
 import numpy as np
 import pytest
 
-from robust_sindy import HuberSINDy, PolynomialLibrary
+from robust_sindy import HuberSINDy, IdentificationWarning, PolynomialLibrary
 from robust_sindy.core import compiled as _compiled
-from robust_sindy.timeseries.differentiation import local_polynomial_derivative
-from robust_sindy import IdentificationWarning
 from robust_sindy.selection import correlation_time
-from robust_sindy.timeseries.temporal import temporal_screen
 from robust_sindy.systems import Lorenz
+from robust_sindy.timeseries.differentiation import local_polynomial_derivative
+from robust_sindy.timeseries.temporal import temporal_screen
 
 from .conftest import van_der_pol
 
@@ -390,7 +389,7 @@ def _numpy_only(monkeypatch):
 def test_compiled_local_fits_agree_with_the_numpy_ones(seed, monkeypatch):
     # Trimmed fits and leave-one-out predictions: compiled, then the NumPy array
     # code on the same data (uniform and irregular times, gross errors, any units).
-    from robust_sindy.timeseries.temporal import clean_neighbours, loo_predict, _lts_fitted
+    from robust_sindy.timeseries.temporal import _lts_fitted, clean_neighbours, loo_predict
 
     rng = np.random.default_rng(seed)
     m = int(rng.integers(14, 2500))

@@ -205,23 +205,92 @@ def _zoo_states(name, family, subsets=True, burn=900):
     return model, system.coef.T != 0, [str(w.message) for w in caught]
 
 
+def _pruning_problem(seed, weak_scale):
+    """A regression with two clear terms (robust t in the hundreds), one spurious column
+    and a third true term of coefficient ``weak_scale``: the selected model carries all
+    four."""
+    from robust_sindy.core.scaling import Standardizer
+    from robust_sindy.selection.problem import Problem
+
+    rng = np.random.default_rng(seed)
+    m = 1500
+    theta = rng.normal(size=(m, 4))
+    y = theta @ np.array([3.0, -2.0, 0.0, weak_scale]) + 0.5 * rng.normal(size=(m,))
+    problem = Problem(theta, y[:, None], Standardizer.from_data(theta, y[:, None]), [slice(0, m)])
+    coef = np.linalg.lstsq(theta, y, rcond=None)[0][:, None]
+    delta = np.array([10.0])  # every residual inside: least squares, whose t we know
+    return problem, coef, delta
+
+
+def _prune(problem, coef, delta, bar):
+    from robust_sindy.selection.final import prune
+    from robust_sindy.selection.refit import debias
+
+    def refit(c):
+        return debias(problem.theta, problem.y, c, delta, "admm", None, {})
+
+    return prune(problem, problem.theta_s, coef.copy(), problem.delta_standard(delta), refit, bar)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_pruning_drops_the_terms_the_data_do_not_vouch_for(seed):
+    # The spurious column's robust t is that of noise (about 1, far below either bar);
+    # the true terms' are in the hundreds: the spurious one is dropped, its t recorded,
+    # the true ones kept, whatever the draw.
+    from robust_sindy.selection.significance import VISIBLE
+
+    problem, coef, delta = _pruning_problem(seed, weak_scale=1.0)
+    for bar in (SIGNIFICANCE, SIGNIFICANCE_ESTIMATED):
+        kept, pruned = _prune(problem, coef, delta, bar)
+        assert kept[2, 0] == 0 and np.all(kept[[0, 1, 3], 0] != 0)
+        assert np.isfinite(pruned[2, 0]) and pruned[2, 0] < VISIBLE
+        assert np.isnan(pruned[[0, 1, 3], 0]).all()
+        t = robust_t(problem.theta_s, problem.y_s, problem.scaler.coef_to_standard(kept),
+                     problem.delta_standard(delta))  # fmt: skip
+        assert np.all(t[[0, 1, 3], 0] > 5 * bar)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_pruning_leaves_an_equation_without_a_clear_term_as_selected(seed):
+    # Every selected term is noise-sized (robust t of a few, far below
+    # SIGNIFICANCE_ESTIMATED): the data vouch for no version of the equation, so
+    # nothing is dropped (the diagnostics warn that its terms are weak instead).
+    problem, _, delta = _pruning_problem(seed, weak_scale=0.0)
+    weak = problem.y - problem.theta[:, :2] @ np.array([[3.0], [-2.0]])  # noise only
+    problem = type(problem)(problem.theta, weak, problem.scaler, problem.segments)
+    coef = np.zeros((4, 1))
+    coef[[2, 3], 0] = np.linalg.lstsq(problem.theta[:, [2, 3]], weak, rcond=None)[0][:, 0]
+    t = robust_t(problem.theta_s, problem.y_s, problem.scaler.coef_to_standard(coef),
+                 problem.delta_standard(delta))  # fmt: skip
+    assert np.nanmax(t) < SIGNIFICANCE_ESTIMATED / 2
+    kept, pruned = _prune(problem, coef, delta, SIGNIFICANCE)
+    assert np.array_equal(kept != 0, coef != 0) and np.isnan(pruned).all()
+
+
+@pytest.mark.slow
 @pytest.mark.parametrize("subsets", [False, True])
 def test_estimated_derivatives_drop_the_terms_the_data_do_not_vouch_for(subsets):
-    # Lorenz, heavy-tailed state noise, states only: among the lam path's candidates
-    # the criterion admits two terms in (z)' fitted to the smooth errors of the
-    # estimated derivatives (x0^2 and x2^2, robust t 0.8); they are dropped, the
-    # support is right, and nothing below t 2 is worth a warning.  A best-subset
-    # candidate without them scores better in the first place.
-    from robust_sindy.selection.significance import SIGNIFICANCE_ESTIMATED, VISIBLE
+    # Lorenz, heavy-tailed state noise, states only, six draws: among the lam path's
+    # candidates the criterion admits terms fitted to the smooth errors of the estimated
+    # derivatives; the final selection drops them (a best-subset candidate without them
+    # scores better in the first place).  A pruned term is never a true one and never
+    # reached t 2; every wrong support is warned; with the best-subset candidates (the
+    # default) the support is right in nearly every draw.
+    from robust_sindy.selection.significance import VISIBLE
 
-    model, true, messages = _zoo_states("Lorenz", "heavy", subsets)
-    dropped = np.isfinite(model.pruned_)
-    assert dropped.any() != subsets and not (dropped & model.support_).any()
-    assert np.all(model.pruned_[dropped] < VISIBLE)
-    assert np.array_equal(model.support_, true)
-    assert np.all(model.significance_[model.support_] >= SIGNIFICANCE_ESTIMATED)
-    assert np.array_equal(model.diagnostics_.pruned, model.pruned_, equal_nan=True)
-    assert not any("were dropped because their robust t" in m for m in messages)
+    right = 0
+    for burn in (600, 700, 800, 900, 1000, 1100):
+        model, true, messages = _zoo_states("Lorenz", "heavy", subsets, burn=burn)
+        dropped = np.isfinite(model.pruned_)
+        assert not (dropped & true).any()
+        assert np.all(model.pruned_[dropped] < VISIBLE)
+        assert not any("were dropped because their robust t" in m for m in messages)
+        assert np.array_equal(model.diagnostics_.pruned, model.pruned_, equal_nan=True)
+        exact = np.array_equal(model.support_, true)
+        assert exact or messages
+        right += exact
+    if subsets:
+        assert right >= 5
 
 
 def test_a_dropped_term_the_data_see_is_reported():

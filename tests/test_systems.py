@@ -4,11 +4,11 @@ import numpy as np
 import pytest
 import scipy.integrate
 
-from robust_sindy.timeseries.differentiation import finite_difference, savgol_derivative
 from robust_sindy.metrics import iae, max_abs_error, support_scores
 from robust_sindy.noise import contaminate, outlier_rows
 from robust_sindy.simulate import rk4
 from robust_sindy.systems import Drone, Lorenz
+from robust_sindy.timeseries.differentiation import finite_difference, savgol_derivative
 
 
 @pytest.mark.parametrize("system", [Lorenz(), Drone()])

@@ -12,7 +12,7 @@ import scipy.ndimage
 
 __all__ = [
     "ALIAS_RTOL",
-    "SCALE_FLOOR", 
+    "SCALE_FLOOR",
     "correlation_time",
     "local_scale",
     "running_median",

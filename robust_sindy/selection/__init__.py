@@ -40,6 +40,9 @@ Examples
 True
 """
 
+from ..core.scaling import robust_scale
+from ..core.statistics import correlation_time
+from ..fitting import HUBER_EFFICIENCY_CONSTANT, auto_delta
 from .aliasing import ALIAS_RTOL, aliased_columns
 from .criteria import (
     CRITERIA,
@@ -50,11 +53,8 @@ from .criteria import (
     score_margin,
     select,
 )
-from .path import PATH_MAX_ITER, Path, lambda_max, path
+from .lam_path import PATH_MAX_ITER, Path, lambda_max, path
 from .refit import STAGE_ROUNDS, threshold_refit
-from ..core.scaling import robust_scale
-from ..core.statistics import correlation_time
-from ..fitting import HUBER_EFFICIENCY_CONSTANT, auto_delta
 from .rows import Screening, screen_rows
 from .significance import SIGNIFICANCE, robust_t
 from .subsets import SUBSET_BUDGET, best_subsets

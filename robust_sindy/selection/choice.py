@@ -29,7 +29,7 @@ from ..fitting import FitResult, auto_delta, fit
 from .aliasing import aliased_columns
 from .bias import library_noise
 from .criteria import Selection, select
-from .path import pilot_budget
+from .lam_path import pilot_budget
 from .problem import Problem
 from .refit import debias
 

@@ -9,11 +9,11 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from ..core.statistics import correlation_time
-from ..fitting import HUBER_EFFICIENCY_CONSTANT, ConvergenceWarning, auto_delta, check_huber_method
 from ..core.losses import huber, huber_psi
+from ..core.statistics import correlation_time
 from ..core.validation import check_int, check_problem, loss_delta
-from .path import Path, path, pilot_budget
+from ..fitting import HUBER_EFFICIENCY_CONSTANT, ConvergenceWarning, auto_delta, check_huber_method
+from .lam_path import Path, path, pilot_budget
 from .refit import STAGE_ROUNDS, refit_column, select_column
 from .subsets import best_subsets
 

@@ -30,7 +30,7 @@ from .bias import (
     residual_noise_factor,
     truncation_bias,
 )
-from .path import pilot_budget
+from .lam_path import pilot_budget
 from .problem import Problem
 from .refit import STAGE_ROUNDS, debias
 from .significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t

@@ -4,9 +4,9 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..fitting import fit
 from ..core.losses import huber_psi
 from ..core.validation import check_int, check_problem
+from ..fitting import fit
 
 __all__ = [
     "STAGE_ROUNDS",

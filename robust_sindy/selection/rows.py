@@ -19,10 +19,10 @@ from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
 from ..core.validation import as_float_array, check_int, check_positive, check_problem
 from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fit
-from .bias import carried_noise, residual_noise_factor
-from .path import pilot_budget
-from .problem import Problem
 from ..timeseries.trajectories import segments_of
+from .bias import carried_noise, residual_noise_factor
+from .lam_path import pilot_budget
+from .problem import Problem
 
 __all__ = [
     "GROSS_CUTOFF",
@@ -65,7 +65,6 @@ _COMPETE_EXCITATION = 100.0
 _COMPETE_MARGIN = 0.02
 
 
-
 @dataclass(repr=False)
 class Screening:
     """Outcome of :func:`screen_rows`.
@@ -104,7 +103,6 @@ class Screening:
         )
 
 
-
 def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
     """Residuals ``r`` (m, n) of a Huber fit on the samples ``keep``, those of the kept
     inliers (``|r| <= delta``) divided by ``sqrt(1 - h_i)`` (studentised), or by
@@ -129,7 +127,6 @@ def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
     return out
 
 
-
 def _excitation_gain(theta: np.ndarray, start: np.ndarray) -> float:
     """Largest ratio, over directions ``v`` of the library, of ``|theta v|^2`` per sample
     on all samples to the same on the ``start`` samples (a generalised eigenvalue;
@@ -145,7 +142,6 @@ def _excitation_gain(theta: np.ndarray, start: np.ndarray) -> float:
         return float("inf")
 
 
-
 def _segment_local_scale(r, segments, half, trusted):
     """Local robust scale of the residuals of the ``trusted`` samples (those the
     temporal screen left alone) around every sample, per trajectory: residuals that
@@ -156,7 +152,6 @@ def _segment_local_scale(r, segments, half, trusted):
         if seg.stop - seg.start > 1:
             out[seg] = local_scale(np.where(trusted[seg, None], r[seg], np.nan), half)
     return out
-
 
 
 def screen_rows(

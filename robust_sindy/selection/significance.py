@@ -20,8 +20,8 @@ from __future__ import annotations
 import numpy as np
 
 from ..core.losses import huber_psi
-from ..core.validation import check_problem
 from ..core.statistics import correlation_time
+from ..core.validation import check_problem
 
 __all__ = ["SIGNIFICANCE", "SIGNIFICANCE_ESTIMATED", "VISIBLE", "robust_t"]
 

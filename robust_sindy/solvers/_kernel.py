@@ -50,7 +50,14 @@ from ..core.compiled import AVAILABLE, Kernels
 from ..core.threads import map_threads
 from .problem import ARMIJO, DIRECT_GRAM, DRIFT, LM, MAX_STEP, UPDATE_ROWS
 
-__all__ = ["AVAILABLE", "KERNEL_STATUS", "newton_kernel", "newton_path_kernel", "usable"]
+__all__ = [
+    "AVAILABLE",
+    "KERNEL_STATUS",
+    "failure_reason",
+    "newton_kernel",
+    "newton_path_kernel",
+    "usable",
+]
 
 #: Meaning of the kernel's status per column.
 KERNEL_STATUS = {
@@ -70,6 +77,11 @@ _RELAX = 0.1  # the damping's decrease after a full step (as in the NumPy iterat
 
 
 _jit = Kernels(globals())
+
+
+def failure_reason() -> str | None:
+    """Why the kernels cannot be compiled here, or None."""
+    return _jit.broken
 
 
 def usable() -> bool:

@@ -49,7 +49,14 @@ import scipy.linalg
 from ..core.certificates import certify, column_norms
 from ..core.losses import huber_prox, huber_psi, soft_threshold
 from .newton import newton
-from .problem import DEFAULT_OPTIONS, PAPER_OPTIONS, Prepared, SolverOutput, column_objective, prepare
+from .problem import (
+    DEFAULT_OPTIONS,
+    PAPER_OPTIONS,
+    Prepared,
+    SolverOutput,
+    column_objective,
+    prepare,
+)
 
 __all__ = ["DEFAULT_OPTIONS", "PAPER_OPTIONS", "solve_admm"]
 

@@ -46,7 +46,6 @@ FIRST_STEPS = 25  # the fast path's own Newton run may take 25x newton_steps
 USE_KERNEL, KERNEL_STEPS = True, 50
 
 
-
 def use_kernel(A, columns: int) -> bool:
     """Whether :func:`solve` runs the compiled iteration first."""
     m, p = A.shape
@@ -56,7 +55,6 @@ def use_kernel(A, columns: int) -> bool:
         and A.theta.flags.c_contiguous
         and m * p * columns <= KERNEL_WORK
     )
-
 
 
 def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
@@ -207,7 +205,6 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
     )
 
 
-
 def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
     """The fast path along a decreasing ``lam`` grid (L, n), every point warm-started.
 
@@ -306,9 +303,7 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
                     first[k] = i + 1
                     retried += 1
                     continue
-            one = solve(
-                theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared, **opts
-            )
+            one = solve(theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared, **opts)
             coef[i, :, k], converged[i, k] = one.coef[:, 0], one.converged[0]
             steps[i, k] = kernel_steps[i, a] + one.info["newton_steps"][0]
             passes += one.info["passes"]

@@ -515,5 +515,3 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
 
 # ---------------------------------------------------------------------------------------
 # the fast path
-
-

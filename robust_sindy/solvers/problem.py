@@ -73,7 +73,6 @@ KERNEL_WORK = 8e5
 _ROWS = 8192  # rows per chunk where the equilibrated library is formed piecewise
 
 
-
 class ScaledColumns:
     """``A = Theta[:, nz] / scale`` as an operator: products and row slices on demand,
     ``Theta`` never copied (the solvers' extra memory stays a few m x n arrays).
@@ -111,7 +110,6 @@ class ScaledColumns:
         return G
 
 
-
 class _Transposed:
     def __init__(self, op: ScaledColumns):
         self.op = op
@@ -120,7 +118,6 @@ class _Transposed:
         op = self.op
         out = op.theta.T @ (v * op._c)
         return out / ((op.scale * op._c)[:, None] if out.ndim == 2 else op.scale * op._c)
-
 
 
 @dataclass
@@ -152,7 +149,6 @@ class Prepared:
         return self._factor
 
 
-
 def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
     """Equilibrate ``theta`` and form its Gram matrix once (pass as ``prepared``)."""
     if theta.size <= KERNEL_WORK and not theta.flags.c_contiguous:
@@ -168,7 +164,6 @@ def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) 
     lipschitz = max(float(np.linalg.eigvalsh(G)[-1]), np.finfo(float).tiny) if G.size else 1.0
     a_norms = norms[nz] / scale
     return Prepared(nz, scale, A, G, a_norms, lipschitz, equilibrate, kappa)
-
 
 
 def solve_sym(M: np.ndarray, b: np.ndarray) -> np.ndarray:
@@ -189,7 +184,6 @@ def solve_sym(M: np.ndarray, b: np.ndarray) -> np.ndarray:
 UPDATE_ROWS, DRIFT = 0.05, 1e4
 
 
-
 def column_objective(r, x, delta, lam):
     """Objective per column with two m x n temporaries (``huber`` as ``c (r - c / 2)``)."""
     c = np.clip(r, -delta, delta)
@@ -197,7 +191,6 @@ def column_objective(r, x, delta, lam):
     np.subtract(r, tmp, out=tmp)
     tmp *= c
     return tmp.sum(axis=0) + (lam * np.abs(x)).sum(axis=0)
-
 
 
 def target_scale(y, delta) -> np.ndarray:

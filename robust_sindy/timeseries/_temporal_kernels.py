@@ -28,7 +28,7 @@ import numpy as np
 
 from ..core.compiled import Kernels
 
-__all__ = ["loo_predict", "lts_windows"]
+__all__ = ["failure_reason", "loo_predict", "lts_windows", "usable"]
 
 _jit = Kernels(globals())
 
@@ -207,12 +207,24 @@ def _windows(x, first, place, pattern, V, Pw, inverse, subsets, q, steps, keep, 
         out[b] = s
 
 
+def usable() -> bool:
+    """Whether the kernels can be compiled here."""
+    return _jit.usable
+
+
+def failure_reason() -> str | None:
+    """Why they cannot, or None."""
+    return _jit.broken
+
+
 def lts_windows(x, first, place, pattern, v, inverse, subsets, q, steps, keep, ridge):
     """Fitted values of the trimmed fits of the windows ``x[first[b] : first[b] + w]``
     at their rows ``place[b]``; ``v`` (P, w, a) the polynomial rows of the P patterns
     of relative times, ``pattern`` (b,) the pattern of each window, ``inverse`` (P, K,
     a, a) the inverses of the elemental systems.  ``None`` where the kernel cannot be
     compiled."""
+    if not _jit.available():
+        return None
     v = np.ascontiguousarray(v, dtype=float)
     if v.shape[1] > 62:
         raise ValueError("a window of the trimmed fits has at most 62 samples")
@@ -236,7 +248,7 @@ def lts_windows(x, first, place, pattern, v, inverse, subsets, q, steps, keep, r
         float(ridge),
         out,
     )
-    return out if _jit.usable else None
+    return out if _jit.usable else None  # None: it could not be compiled after all
 
 
 @_jit
@@ -320,6 +332,8 @@ def loo_predict(x, t, nb, degree, at):
     """Leave-one-out predictions of ``x`` at the samples ``at`` from their neighbours
     ``nb`` (rows; -1 unused) and the factors ``sqrt(1 + sum_j w_j^2)``; ``None``
     where the kernel cannot be compiled."""
+    if not _jit.available():
+        return None
     pred = np.empty(nb.shape[0])
     factor = np.empty(nb.shape[0])
     _jit.run(
@@ -332,4 +346,4 @@ def loo_predict(x, t, nb, degree, at):
         pred,
         factor,
     )
-    return (pred, factor) if _jit.usable else None
+    return (pred, factor) if _jit.usable else None  # None: it could not be compiled after all

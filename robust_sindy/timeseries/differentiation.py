@@ -266,7 +266,6 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
     (see :func:`choose_half_window`)."""
     import scipy.stats
 
-
     m, n = x2.shape
     a = as_float_array(library, "library", (2,))
     if a.shape[0] != m:

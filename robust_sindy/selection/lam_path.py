@@ -10,9 +10,9 @@ import numpy as np
 from tqdm import tqdm
 
 from ..core.certificates import certify
-from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fast_path_options, fit
 from ..core.losses import huber_psi
 from ..core.validation import as_float_array, check_int, check_positive, check_problem, loss_delta
+from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fast_path_options, fit
 from ..solvers import driver, problem
 
 __all__ = ["PATH_MAX_ITER", "Path", "lambda_max", "path"]
