@@ -311,29 +311,54 @@ def test_a_dropped_term_the_data_see_is_reported():
             assert found[0].startswith("equations [1]: 1 selected terms") and "3.5" in found[0]
 
 
+def test_a_pruned_term_with_measured_derivatives_is_reported_without_advising_them():
+    # The warning for a term pruned at robust t between 2 and the bar of measured
+    # derivatives (5) says it may be real, and does not advise measured derivatives.
+    import dataclasses
+
+    from robust_sindy.systems import Lorenz
+
+    data = Lorenz().generate(t_end=5.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        d = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
+    assert d.significance_level == SIGNIFICANCE
+    pruned = np.full_like(d.pruned, np.nan)
+    pruned[0, 4] = 3.3
+    (message,) = [
+        m
+        for m in dataclasses.replace(d, pruned=pruned).problems()
+        if "were dropped because their robust t" in m
+    ]
+    assert "below 5" in message and "3.3" in message and "measured derivatives" not in message
+
+
+@pytest.mark.slow
 def test_measured_derivatives_drop_the_terms_the_data_do_not_vouch_for():
     # Chen, Student-t (3 dof) state noise of 0.5 % of each state's spread, measured
-    # derivatives: the criterion admits x0*x2 in (x0)' at robust t 3.3 beside terms at
-    # t > 100; it is dropped, the support is right, and a warning says it may be real
-    # (without advising measured derivatives: they are).
+    # derivatives, six draws: terms the criterion admits at a robust t of a few (x0*x2
+    # in (x0)' at t 3.3 on one draw) are dropped, never a true one, and a dropped term
+    # that reached t 2 is reported; the support is right in nearly every draw.
     from robust_sindy import zoo
     from robust_sindy.selection.significance import VISIBLE
 
     system = {s.name: s for s in zoo.polynomial_systems()}["Chen"]
     params = zoo.Contamination(heavy_dof=3.0, heavy_scale=0.005)
-    rng = np.random.default_rng([5, zoo.FAMILIES.index("heavy"), 0])
     t, x, x_dot = rk4_trajectory(system, 2000, 600)
-    noisy, _ = zoo.contaminate_family(x, "heavy", rng, params)
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(noisy, t, x_dot=x_dot)
-    assert np.array_equal(model.support_, system.coef.T != 0)
-    dropped = np.isfinite(model.pruned_)
-    assert dropped.sum() == 1 and not (dropped & model.support_).any()
-    assert VISIBLE <= model.pruned_[dropped][0] < SIGNIFICANCE
-    messages = [str(w.message) for w in caught]
-    (message,) = [m for m in messages if "were dropped because their robust t" in m]
-    assert "below 5" in message and "measured derivatives" not in message
+    true = system.coef.T != 0
+    right = 0
+    for seed in range(5, 11):
+        rng = np.random.default_rng([seed, zoo.FAMILIES.index("heavy"), 0])
+        noisy, _ = zoo.contaminate_family(x, "heavy", rng, params)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(noisy, t, x_dot=x_dot)
+        dropped = np.isfinite(model.pruned_)
+        assert not (dropped & true).any()
+        reported = any("were dropped because their robust t" in str(w.message) for w in caught)
+        assert reported == bool((np.nan_to_num(model.pruned_) >= VISIBLE).any())
+        right += np.array_equal(model.support_, true)
+    assert right >= 5
 
 
 def test_a_drop_that_leaves_no_clear_term_is_undone():
