@@ -381,7 +381,7 @@ class HuberSINDy(BaseEstimator):
         every sample out of core (:func:`robust_sindy.outofcore.refit`)."""
         chosen = outofcore.sample(data)
         self._set_fitted(self._identify(chosen))
-        warn(self.diagnostics_)
+        warn(self.diagnostics_, stacklevel=4)
         done = outofcore.refit(self, data, chosen)
         self.coef_sample_ = self.coef_
         self.coef_ = np.ascontiguousarray(done.coef.T)

@@ -265,39 +265,10 @@ def fit(
     if method != "cvxpy" and solver is not None:
         raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
 
-    gap_tol = 0.0  # only the fast path also accepts a certified duality gap
     t0 = time.perf_counter()
-    if method == "admm":
-        opts = fast_path_options(options, theta, y, one_d)
-        tol, gap_tol = opts["tol"], opts["gap_tol"]
-        out = driver.solve(theta, y, delta_k, lam_k, **opts)
-        solver_name = "newton" if opts["polish"] else "admm"
-    elif method == "cvxpy":
-        solver_name = "clarabel" if solver is None else solver
-        if solver_name not in reference.SOLVERS:
-            raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
-        tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
-        reference.check_options(solver_name, options)
-        out = reference.solve_cvxpy(theta, y, delta_k, lam_k, solver=solver_name, **options)
-    elif method == "stls":
-        _reject_unknown(options, {"threshold", "max_sweeps", "tol"}, "stls")
-        tol = check_positive(options.get("tol", LS_TOL), "tol")
-        threshold = options.get("threshold", 0.05)
-        if (
-            isinstance(threshold, bool)
-            or not isinstance(threshold, Real)
-            or not np.isfinite(threshold)
-            or threshold < 0
-        ):
-            raise ValueError(f"threshold must be a finite number >= 0; got {threshold!r}")
-        sweeps = check_int(options.get("max_sweeps", 5000), "max_sweeps", 1)
-        out = stls.solve_stls(theta, y, threshold=float(threshold), max_sweeps=sweeps)
-        solver_name = "stls"
-    else:
-        _reject_unknown(options, {"tol"}, "ols")
-        tol = check_positive(options.get("tol", LS_TOL), "tol")
-        out = stls.solve_ols(theta, y)
-        solver_name = "ols"
+    out, solver_name, tol, gap_tol, opts = _solve(
+        method, theta, y, delta_k, lam_k, solver, options, one_d
+    )
     solve_time = time.perf_counter() - t0
 
     cert = certify(theta, y, out.coef, delta_k, lam_k if lam_k.ndim == 2 else lam_k[None, :])
@@ -310,39 +281,7 @@ def fit(
         column_ok = out.converged & ((own_kkt <= tol) | (cert.rel_gap <= gap_tol))
     if not column_ok.all():
         bad = np.flatnonzero(~column_ok).tolist()
-        stalled = out.info.get("stalled")
-        if method == "admm" and stalled is not None and stalled[bad].any():
-            advice = (
-                f"columns {np.flatnonzero(stalled).tolist()} stopped where floating point "
-                f"cannot certify tol={opts['tol']:g} (see the messages): for an "
-                "ill-conditioned library rescale or centre the states before building it, "
-                "drop nearly collinear terms, or pass a larger tol; for a delta below the "
-                "residuals' resolution pass a larger delta"
-            )
-        elif method == "admm":
-            advice = (
-                f"increase max_iter (now {opts['max_iter']}), start from another rho "
-                f"(now {opts['rho']}; e.g. 1e-4 or 10), or keep equilibrate, adaptive_rho "
-                "and polish on"
-            )
-            ratio = delta_k[bad] / np.maximum(np.abs(y[:, bad]).max(axis=0), np.finfo(float).tiny)
-            if loss == "huber" and ratio.min() < 1e-4:
-                advice += (
-                    f"; delta is {ratio.min():.1e} of max|xdot|, which makes the problem a "
-                    "least-absolute-deviation fit, where ADMM converges slowly: "
-                    "try method='cvxpy' or a larger delta"
-                )
-        elif method == "cvxpy":
-            other = "osqp" if solver_name == "clarabel" else "clarabel"
-            advice = f"try solver={other!r} or method='admm'"
-        elif method == "stls" and not out.converged[bad].all():
-            advice = "increase max_sweeps"
-        else:
-            advice = (
-                "the least-squares solution could not be certified to "
-                f"tol={tol:g} in floating point (an ill-conditioned or rank-deficient "
-                "library); rescale the states, drop collinear terms, or pass a larger tol"
-            )
+        advice = _advice(method, solver_name, out, bad, opts, tol, delta_k, y, loss)
         warnings.warn(
             f"{method} ({solver_name}) did not certify columns {bad} "
             f"({certificate}: relative violation "
@@ -378,6 +317,82 @@ def fit(
         certificate=certificate,
         certificate_kkt=own_kkt,
     )
+
+
+def _solve(method, theta, y, delta_k, lam_k, solver, options, one_d):
+    """The chosen method's run, its solver's name, its certificate's tolerances (KKT and,
+    for the fast path only, a certified duality gap) and the fast path's options."""
+    gap_tol, opts = 0.0, {}
+    if method == "admm":
+        opts = fast_path_options(options, theta, y, one_d)
+        tol, gap_tol = opts["tol"], opts["gap_tol"]
+        out = driver.solve(theta, y, delta_k, lam_k, **opts)
+        solver_name = "newton" if opts["polish"] else "admm"
+    elif method == "cvxpy":
+        solver_name = "clarabel" if solver is None else solver
+        if solver_name not in reference.SOLVERS:
+            raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
+        tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
+        reference.check_options(solver_name, options)
+        out = reference.solve_cvxpy(theta, y, delta_k, lam_k, solver=solver_name, **options)
+    elif method == "stls":
+        _reject_unknown(options, {"threshold", "max_sweeps", "tol"}, "stls")
+        tol = check_positive(options.get("tol", LS_TOL), "tol")
+        threshold = options.get("threshold", 0.05)
+        if (
+            isinstance(threshold, bool)
+            or not isinstance(threshold, Real)
+            or not np.isfinite(threshold)
+            or threshold < 0
+        ):
+            raise ValueError(f"threshold must be a finite number >= 0; got {threshold!r}")
+        sweeps = check_int(options.get("max_sweeps", 5000), "max_sweeps", 1)
+        out = stls.solve_stls(theta, y, threshold=float(threshold), max_sweeps=sweeps)
+        solver_name = "stls"
+    else:
+        _reject_unknown(options, {"tol"}, "ols")
+        tol = check_positive(options.get("tol", LS_TOL), "tol")
+        out = stls.solve_ols(theta, y)
+        solver_name = "ols"
+    return out, solver_name, tol, gap_tol, opts
+
+
+def _advice(method, solver_name, out, bad, opts, tol, delta_k, y, loss) -> str:
+    """What to try when columns ``bad`` were not certified."""
+    stalled = out.info.get("stalled")
+    if method == "admm" and stalled is not None and stalled[bad].any():
+        advice = (
+            f"columns {np.flatnonzero(stalled).tolist()} stopped where floating point "
+            f"cannot certify tol={opts['tol']:g} (see the messages): for an "
+            "ill-conditioned library rescale or centre the states before building it, "
+            "drop nearly collinear terms, or pass a larger tol; for a delta below the "
+            "residuals' resolution pass a larger delta"
+        )
+    elif method == "admm":
+        advice = (
+            f"increase max_iter (now {opts['max_iter']}), start from another rho "
+            f"(now {opts['rho']}; e.g. 1e-4 or 10), or keep equilibrate, adaptive_rho "
+            "and polish on"
+        )
+        ratio = delta_k[bad] / np.maximum(np.abs(y[:, bad]).max(axis=0), np.finfo(float).tiny)
+        if loss == "huber" and ratio.min() < 1e-4:
+            advice += (
+                f"; delta is {ratio.min():.1e} of max|xdot|, which makes the problem a "
+                "least-absolute-deviation fit, where ADMM converges slowly: "
+                "try method='cvxpy' or a larger delta"
+            )
+    elif method == "cvxpy":
+        other = "osqp" if solver_name == "clarabel" else "clarabel"
+        advice = f"try solver={other!r} or method='admm'"
+    elif method == "stls" and not out.converged[bad].all():
+        advice = "increase max_sweeps"
+    else:
+        advice = (
+            "the least-squares solution could not be certified to "
+            f"tol={tol:g} in floating point (an ill-conditioned or rank-deficient "
+            "library); rescale the states, drop collinear terms, or pass a larger tol"
+        )
+    return advice
 
 
 def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResult:

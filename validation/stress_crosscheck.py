@@ -18,7 +18,7 @@ import warnings
 import numpy as np
 
 import robust_sindy as rs
-from robust_sindy.solvers.admm import DEFAULT_OPTIONS
+from robust_sindy.solvers.problem import DEFAULT_OPTIONS
 
 TOL = DEFAULT_OPTIONS["tol"]  # the certificate ADMM must reach
 

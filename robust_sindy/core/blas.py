@@ -3,8 +3,8 @@
 Small products (a p x p block, one pass over a library of a few thousand rows) cost
 less than starting BLAS threads; :func:`one_thread` limits every BLAS library loaded
 in the process to one thread for a ``with`` block.  Its :class:`threadpoolctl.ThreadpoolController`
-is made once, on first use (finding the libraries takes about 0.3 ms; a limit with it
-made, about 10 microseconds).
+is made once, on first use (finding the libraries costs far more than a limit with it
+made).
 """
 
 from __future__ import annotations
@@ -13,8 +13,7 @@ _CONTROLLER = None
 
 
 def one_thread():
-    """A context manager that runs BLAS on one thread (e.g. at m = 1e3, p = 35 a fast-path
-    fit took 8.0 ms with OpenBLAS's two threads and 2.8 ms with one)."""
+    """A context manager that runs BLAS on one thread."""
     global _CONTROLLER
     if _CONTROLLER is None:
         from threadpoolctl import ThreadpoolController

@@ -16,8 +16,7 @@ the library's derivative with respect to state ``k``, ``sigma_k`` that state's n
 level measured by the temporal screen).  The ratio ``|xi_j| / beta_j`` does not change
 when any column, target or state is rescaled, so the rule is unit-free.  The signed sum
 matters: in a term whose equation has large coefficients of opposite signs, their
-biases cancel (QiChen's ``x1`` under heavy-tailed noise: 0.0009 against a triangle
-bound ``sum_l |M_jl| |xi_l|`` of 0.016), and a bound would drop a true term.  It assumes
+biases cancel, and the triangle bound ``sum_l |M_jl| |xi_l|`` would drop a true term.  It assumes
 the derivatives carry no noise of their own: derivatives estimated from the same noisy
 states have errors correlated with ``N``, the first-order formula leaves that out, and
 :class:`~robust_sindy.HuberSINDy` then uses the bound (``signed=False``).

@@ -275,6 +275,31 @@ def _pick(scores: np.ndarray) -> np.ndarray:
     return np.argmax(tie, axis=0)
 
 
+def _cv_scores(theta, y, lams, delta_k, tol, n_folds, method, solver, progress, path_options):
+    """Blocked cross-validation of the path on the grid ``lams``: the selection stage on
+    the training blocks, the mean Huber loss on the held-out block."""
+    folds = blocked_folds(theta.shape[0], n_folds)
+    scores = np.zeros(lams.shape)
+    for train, test in tqdm(folds, desc="blocked CV", disable=not progress, leave=False):
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            sub = path(
+                theta[train],
+                y[train],
+                delta_k,
+                lams,
+                method=method,
+                solver=solver,
+                **path_options,
+            )
+            cand = _stage_all(
+                theta[train], y[train], sub.coef, delta_k, tol, method, solver, path_options
+            )
+        r = y[test][None, :, :] - np.einsum("mp,lpn->lmn", theta[test], cand)
+        scores += huber(r, delta_k).mean(axis=1) / len(folds)
+    return scores
+
+
 def select(
     theta,
     xdot,
@@ -405,28 +430,10 @@ def select(
             ]
         )
     else:
-        folds = blocked_folds(theta.shape[0], n_folds)
-        scores = np.zeros(full.lams.shape)
-        for train, test in tqdm(folds, desc="blocked CV", disable=not progress, leave=False):
-            with warnings.catch_warnings():
-                warnings.simplefilter("ignore", ConvergenceWarning)
-                sub = path(
-                    theta[train],
-                    y[train],
-                    delta_k,
-                    full.lams,
-                    method=method,
-                    solver=solver,
-                    **path_options,
-                )
-                cand = _stage_all(
-                    theta[train], y[train], sub.coef, delta_k, tol, method, solver, path_options
-                )
-            r = y[test][None, :, :] - np.einsum("mp,lpn->lmn", theta[test], cand)
-            scores += huber(r, delta_k).mean(axis=1) / len(folds)
+        scores = _cv_scores(theta, y, full.lams, delta_k, tol, n_folds, method, solver, progress,
+                            path_options)  # fmt: skip
     index = _pick(scores)
     cols = np.arange(y.shape[1])
-    pooled, pooled_scores = candidates, scores
     subset_coef = np.zeros((0, *candidates.shape[1:]))
     subset_scores = np.zeros((0, y.shape[1]))
     subset_size = np.zeros(y.shape[1], dtype=int)
@@ -438,8 +445,8 @@ def select(
                 theta, y, candidates[-1], delta_k, tau, tol,
                 np.nanmin(scores, axis=0), method, solver, path_options, caches,
             )  # fmt: skip
-        pooled = np.concatenate([candidates, subset_coef])
-        pooled_scores = np.concatenate([scores, subset_scores])
+    pooled = np.concatenate([candidates, subset_coef])
+    pooled_scores = np.concatenate([scores, subset_scores])
     chosen = _pick(pooled_scores)
     from_subsets = chosen >= len(candidates)
     bad = np.flatnonzero(~full.converged[index, cols] & ~from_subsets)

@@ -93,9 +93,7 @@ def _grid(lmax, lams, n_lams, eps, n):
 
 
 #: Entries of the residual blocks formed at a time when a path's points are certified
-#: together (``m x points x columns``; small enough to stay in cache: at m = 1e3 and 3
-#: columns 10 points at a time are 3 times faster than one by one, at m = 1e4 a
-#: block is one point).
+#: together (``m x points x columns``; small enough to stay in cache).
 _CERTIFY_BLOCK = 2**15
 
 

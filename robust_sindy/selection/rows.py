@@ -53,9 +53,8 @@ _FREE_ROUNDS = 5
 
 #: How many times more some library direction must be excited (mean square per sample)
 #: by all the samples than by the start for the iteration from every sample to compete:
-#: a start that lost a fast excursion loses a direction (on the zoo's LiuChen and
-#: AtmosphericRegime: 4e3 to 3e5 times), a start that lost scattered outliers does not
-#: (3 to 25 times with rows or spikes contamination).
+#: a start that lost a fast excursion loses a direction by orders of magnitude more
+#: than one that lost scattered outliers (see the design notes).
 _COMPETE_EXCITATION = 100.0
 
 
@@ -152,6 +151,94 @@ def _segment_local_scale(r, segments, half, trusted):
         if seg.stop - seg.start > 1:
             out[seg] = local_scale(np.where(trusted[seg, None], r[seg], np.nan), half)
     return out
+
+
+class _Pilots:
+    """The unpenalised Huber pilots of :func:`screen_rows` and the iterations over them,
+    on ``theta`` (m, p) and ``y`` (m, n), started from the samples ``first``."""
+
+    def __init__(self, theta, y, first, segments, half, noise, cutoff, rounds, method):
+        self.theta, self.y, self.first = theta, y, first.copy()
+        self.segments, self.half, self.noise = segments, half, noise
+        self.cutoff, self.rounds, self.method = cutoff, rounds, method
+        rms = np.sqrt(np.mean(y**2, axis=0))
+        self.rms = np.where(rms > 0, rms, 1.0)
+        # The pilots only propose flags: a bounded budget, their certificates not
+        # required (the final fit of the kept samples is certified on its own).
+        self.budget = pilot_budget(method)
+
+    def bound_of(self, r, scale, coef):
+        """Each residual's bound: the scale, the local scale of the trusted samples'
+        residuals, and the state noise carried through the model (no more of it than
+        the residuals themselves show)."""
+        bound = np.broadcast_to(scale, r.shape)
+        if self.segments is not None:
+            local = _segment_local_scale(r, self.segments, self.half, self.first)
+            bound = np.maximum(bound, local)
+        if self.noise:
+            carried = carried_noise(self.noise, coef)
+            factor = [residual_noise_factor(r[:, k], carried[:, k]) for k in range(r.shape[1])]
+            bound = np.maximum(bound, np.sqrt(factor) * carried)
+        return bound
+
+    def pilot(self, keep):
+        """The unpenalised Huber pilot on ``keep``: coefficients and residuals of every
+        sample, centred on the kept ones' median, those of the kept samples corrected for
+        their leverage (:func:`_leverage_corrected`)."""
+        theta, y, method, budget = self.theta, self.y, self.method, self.budget
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
+            coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef
+            coef = coef.reshape(theta.shape[1], -1)
+        r = y - theta @ coef
+        r = r - np.median(r[keep], axis=0)
+        return coef, _leverage_corrected(theta, r, keep, delta, ~self.first)
+
+    def scaled(self, r, scale, coef):
+        """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
+        return gross_ratio(r, self.bound_of(r, scale, coef), self.cutoff)
+
+    def iterate(self, keep):
+        """Refit on the samples kept until the flags are stable (after the free rounds
+        flags are only added: no oscillation)."""
+        p = self.theta.shape[1]
+        flags, converged, done, scale = None, False, 0, np.zeros(self.y.shape[1])
+        for done in range(1, self.rounds + 1):
+            coef, r = self.pilot(keep)
+            scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), SCALE_FLOOR * self.rms)
+            new = self.scaled(r, scale, coef) > 1
+            if flags is not None and done > _FREE_ROUNDS:
+                new |= flags
+            if flags is not None and np.array_equal(new, flags):
+                converged = True
+                break
+            flags = new
+            keep = ~flags
+            if keep.sum() <= p:
+                break
+        return flags, scale, done, converged, r, coef
+
+    def forward(self, keep, scale0):
+        """Forward search: grow the kept set from ``keep`` by the excluded samples with
+        the smallest scaled residuals, 2 % of the samples at a time, refitting after
+        each, until 90 % are in; return the samples explained (residual within the
+        bound at ``scale0``) by the step whose model explained most."""
+        m, p = self.theta.shape
+        keep = keep.copy()
+        step = max(p, int(np.ceil(_COMPETE_MARGIN * m)))
+        best, best_n = keep.copy(), -1
+        for _ in range(50):
+            coef, r = self.pilot(keep)
+            z = self.scaled(r, scale0, coef)
+            n_ok = int((z <= 1).sum())
+            if n_ok > best_n:
+                best, best_n = z <= 1, n_ok
+            out = np.flatnonzero(~keep)
+            if out.size == 0 or keep.mean() > 0.9:
+                break
+            keep[out[np.argsort(z[out])[:step]]] = True
+        return best
 
 
 def screen_rows(
@@ -257,80 +344,9 @@ def screen_rows(
             raise ValueError(f"start must be a boolean mask of shape ({m},); got {keep.shape}")
     if keep.sum() < max(2 * p, m // 2):
         keep = np.ones(m, dtype=bool)  # too little left to fit: start from everything
-    first = keep.copy()
-    rms = np.sqrt(np.mean(y**2, axis=0))
-    rms = np.where(rms > 0, rms, 1.0)
-    local = None if segments is None else (lambda r: _segment_local_scale(r, segments, half, first))
-
-    def bound_of(r, scale, coef):
-        bound = np.broadcast_to(scale, r.shape)
-        if local is not None:
-            bound = np.maximum(bound, local(r))
-        if noise:
-            carried = carried_noise(noise, coef)
-            # No more of the measured noise than the residuals themselves show.
-            factor = [residual_noise_factor(r[:, k], carried[:, k]) for k in range(r.shape[1])]
-            bound = np.maximum(bound, np.sqrt(factor) * carried)
-        return bound
-
-    # The pilots only propose flags: a bounded budget, their certificates not required
-    # (the final fit of the kept samples is certified on its own).
-    budget = pilot_budget(method)
-
-    def pilot(keep):
-        """The unpenalised Huber pilot on ``keep``: coefficients and residuals of every
-        sample, centred on the kept ones' median, those of the kept samples corrected for
-        their leverage (:func:`_leverage_corrected`)."""
-        with warnings.catch_warnings():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
-            coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef.reshape(p, -1)
-        r = y - theta @ coef
-        r = r - np.median(r[keep], axis=0)
-        return coef, _leverage_corrected(theta, r, keep, delta, ~first)
-
-    def scaled(r, scale, coef):
-        """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
-        return gross_ratio(r, bound_of(r, scale, coef), cutoff)
-
-    def iterate(keep):
-        flags, converged, done, scale = None, False, 0, np.zeros(y.shape[1])
-        for done in range(1, rounds + 1):
-            coef, r = pilot(keep)
-            scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), SCALE_FLOOR * rms)
-            new = scaled(r, scale, coef) > 1
-            if flags is not None and done > _FREE_ROUNDS:
-                new |= flags  # past the free rounds flags are only added: no oscillation
-            if flags is not None and np.array_equal(new, flags):
-                converged = True
-                break
-            flags = new
-            keep = ~flags
-            if keep.sum() <= p:
-                break
-        return flags, scale, done, converged, r, coef
-
-    def forward(keep, scale0):
-        """Forward search: grow the kept set from ``keep`` by the excluded samples with
-        the smallest scaled residuals, 2 % of the samples at a time, refitting after
-        each, until 90 % are in; return the samples explained (residual within the
-        bound at ``scale0``) by the step whose model explained most."""
-        keep = keep.copy()
-        step = max(p, int(np.ceil(_COMPETE_MARGIN * m)))
-        best, best_n = keep.copy(), -1
-        for _ in range(50):
-            coef, r = pilot(keep)
-            z = scaled(r, scale0, coef)
-            n_ok = int((z <= 1).sum())
-            if n_ok > best_n:
-                best, best_n = z <= 1, n_ok
-            out = np.flatnonzero(~keep)
-            if out.size == 0 or keep.mean() > 0.9:
-                break
-            keep[out[np.argsort(z[out])[:step]]] = True
-        return best
-
-    flags, scale, done_rounds, converged, r, coef = iterate(keep)
+    pilots = _Pilots(theta, y, keep, segments, half, noise, cutoff, rounds, method)
+    first, rms = pilots.first, pilots.rms
+    flags, scale, done_rounds, converged, r, coef = pilots.iterate(keep)
     restarted = False
     if (
         not first.all()
@@ -344,10 +360,11 @@ def screen_rows(
         # kept set from the first one's: the one whose model explains most samples at
         # the smallest of the noise scales wins, by more than 2 % of the samples (a
         # pilot bent by gross errors has a larger scale and explains fewer).
-        cands = [iterate(np.ones(m, dtype=bool)), iterate(forward(~flags, scale))]
+        everything = pilots.iterate(np.ones(m, dtype=bool))
+        cands = [everything, pilots.iterate(pilots.forward(~flags, scale))]
         common = np.minimum.reduce([scale] + [c[1] for c in cands])
         explained = [
-            int((scaled(rr, common, cc) <= 1).sum())
+            int((pilots.scaled(rr, common, cc) <= 1).sum())
             for rr, cc in [(r, coef)] + [(c[4], c[5]) for c in cands]
         ]
         best = int(np.argmax(explained))

@@ -13,8 +13,8 @@ of magnitude too short), with the NumPy iteration's Levenberg-Marquardt rule and
 proximal-gradient step where the direction is no descent direction.  The passes over
 the library are BLAS products (on one thread); the columns, independent, run side by side
 on the machine's cores (:func:`robust_sindy.core.threads.map_threads`), each computed as it
-would be alone.  At ``m = 1000`` a step costs tens of microseconds
-instead of the ~0.5 ms of NumPy calls.  Along a ``lam`` grid (:func:`newton_path_kernel`)
+would be alone.  On small problems a step costs far less than the NumPy iteration's
+calls (see the design notes).  Along a ``lam`` grid (:func:`newton_path_kernel`)
 each point starts from the last one's solution and reuses its last pass and its inlier
 Gram matrix: a warm point no longer pays one pass and one Gram matrix before its first
 step.
@@ -36,9 +36,8 @@ certificate still decides.
 
 Numba is a dependency of the package, imported on the kernel's first use
 (:mod:`robust_sindy.core.compiled`); if it is not installed, :data:`AVAILABLE` is ``False``
-and the NumPy iteration does all the work.  The compiled code is cached on disk: the
-first call in a fresh installation compiles it once (about 10 s), later processes load
-it (a fraction of a second).
+and the NumPy iteration does all the work.  The compiled code is cached on disk, compiled
+once per installation (in the background by default: see the module).
 """
 
 from __future__ import annotations

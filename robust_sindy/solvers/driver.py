@@ -282,10 +282,7 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
             # Once more from the previous point with a fresh Gram matrix (the walk's
             # updated one can lead a hard point astray), then as a cold fit
             # (least-squares start): from the previous point the NumPy iteration can
-            # take hundreds of steps on a nearly least-absolute-deviation piece and hand
-            # the point to the ADMM (two such points took 1.07 s of a 1.29 s path on the
-            # screened Lorenz problem of validation/path_cost.py, whose 50 cold fits take
-            # 0.44 s).
+            # take hundreds of steps on a nearly least-absolute-deviation piece.
             i = int(stop[a])
             again = _kernel.newton_kernel(
                 A.theta, A.scale, prepared.G, ys[:, [k]], ds[[k]], lam_s[i][:, [k]],

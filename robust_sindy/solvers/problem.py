@@ -63,10 +63,9 @@ DIRECT_GRAM = 0.5  # form M from the inlier rows when outliers carry this much o
 
 
 #: The compiled iteration works one column at a time: it is the faster one while a
-#: step's NumPy calls (a fraction of a millisecond) outweigh the passes over the library,
-#: up to about ``m p k`` = 8e5 (measured: 3-4 times faster at m = 1e3, 1.2-1.5 times at
-#: m = 1e4 with p <= 20 and 3 columns, slower beyond); the batched NumPy steps, whose
-#: passes serve every column at once, take the larger problems.
+#: step's NumPy calls outweigh the passes over the library, up to about this ``m p k``
+#: (see the design notes); the batched NumPy steps, whose passes serve every column at
+#: once, take the larger problems.
 KERNEL_WORK = 8e5
 
 
