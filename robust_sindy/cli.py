@@ -169,6 +169,45 @@ def _zoo(args) -> int:
     return 0
 
 
+def frontier_help() -> str:
+    from . import frontier
+
+    return frontier.__doc__.split("\n\n")[0]
+
+
+def _frontier(args) -> int:
+    from . import frontier
+
+    if args.quick:
+        levels, n, methods = (0.01, 0.1), 2, ("huber", "stlsq", "stlsq_weak")
+    else:
+        levels = frontier.LEVELS if args.levels is None else _levels(args.levels)
+        n, methods = args.systems, frontier.METHODS
+    rows = frontier.run(n, args.draw, args.seed, levels, methods, args.jobs, _progress(args))
+    protocol = (
+        frontier.published(jobs=args.jobs, progress=_progress(args)) if args.published else None
+    )
+    command = "robust-sindy frontier" + (" --quick" if args.quick else
+              f" --systems {n} --draw {args.draw} --seed {args.seed}"
+              + (" --published" if args.published else ""))  # fmt: skip
+    print(frontier.table(frontier.summary(rows)))
+    if protocol:
+        print(frontier.protocol_table(protocol))
+    paths = frontier.write(rows, Path(args.out), command, protocol)
+    print("wrote", ", ".join(str(p) for p in paths))
+    return 0
+
+
+def _levels(text: str) -> tuple[float, ...]:
+    try:
+        levels = tuple(float(v) for v in text.split(","))
+    except ValueError:
+        raise SystemExit(f"robust-sindy frontier: error: --levels: not numbers: {text!r}") from None
+    if not levels or any(not (0 <= v < 10) for v in levels):
+        raise SystemExit(f"robust-sindy frontier: error: --levels must be in [0, 10); got {text!r}")
+    return levels
+
+
 def _fit(args, parser) -> int:
     from . import fit_command
 
@@ -185,6 +224,7 @@ def _fit(args, parser) -> int:
             derivatives=args.derivatives,
             delta=args.delta,
             lam=args.lam,
+            formulation=args.formulation,
             progress=_progress(args),
         )
     except fit_command.InputError as exc:
@@ -290,6 +330,13 @@ def main(argv: list[str] | None = None) -> int:
     fit.add_argument("--delta", default="auto", help="Huber threshold (default: automatic)")
     fit.add_argument("--lam", default="auto", help="L1 weight (default: automatic)")
     fit.add_argument(
+        "--formulation",
+        choices=("auto", "strong", "weak"),
+        default="auto",
+        help="rows of the regression: samples with derivatives (strong), integrals "
+        "against test functions (weak), or chosen from the data (auto, the default)",
+    )
+    fit.add_argument(
         "--out", type=_folder, default="fit_results", help="output folder (./fit_results)"
     )
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
@@ -353,6 +400,24 @@ def main(argv: list[str] | None = None) -> int:
     zoo_.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")
     zoo_.add_argument("--quiet", action="store_true", help="no progress bar")
     _add_scheduler(zoo_)
+    fro = sub.add_parser(
+        "frontier",
+        help="identification from noisy states against the noise level, beside the peers",
+        description=frontier_help(),
+    )
+    fro.add_argument("--quick", action="store_true", help="two systems, two noise levels")
+    fro.add_argument("--systems", type=_count, default=20, help="systems drawn (default 20)")
+    fro.add_argument("--draw", type=int, default=1, help="seed of the systems' draw (1)")
+    fro.add_argument("--seed", type=int, default=0, help="seed of the trajectories and noise")
+    fro.add_argument(
+        "--levels", default=None, help="noise levels, comma-separated (0.001,0.01,0.05,0.1,0.2)"
+    )
+    fro.add_argument(
+        "--published", action="store_true", help="also run the published protocol (slow)"
+    )
+    fro.add_argument("--out", type=_folder, default="frontier_results", help="output folder")
+    fro.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")
+    fro.add_argument("--quiet", action="store_true", help="no progress bar")
     args = parser.parse_args(argv)
     if args.command == "fit":
         return _fit(args, fit)
@@ -364,6 +429,8 @@ def main(argv: list[str] | None = None) -> int:
         return _bench(args)
     if args.command == "reproduce":
         return _reproduce(args)
+    if args.command == "frontier":
+        return _frontier(args)
     return 2  # pragma: no cover - argparse enforces the sub-command
 
 

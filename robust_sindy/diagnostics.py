@@ -209,6 +209,16 @@ class Diagnostics:
         an exactly conserved quantity:
         :func:`robust_sindy.selection.aliasing.aliased_columns`); an equation written
         with them fits equally well, so a warning names them.
+    formulation : {"strong", "weak"}
+        The regression's rows: samples (derivatives measured or estimated), or test
+        functions of the weak form (:mod:`robust_sindy.timeseries.weak`); with the weak
+        form the counts of the row screen are of test functions.
+    support_half_width : float
+        The weak form's half width of the test functions (time units); NaN otherwise.
+    n_rows : int
+        The weak form's test functions (0 otherwise).
+    formulation_reason : str
+        Which formulation was used, and why.
     """
 
     n_samples: int
@@ -239,6 +249,10 @@ class Diagnostics:
     pruned: np.ndarray
     aliased: list[str]
     derivative_half_window: np.ndarray
+    formulation: str = "strong"
+    support_half_width: float = float("nan")
+    n_rows: int = 0
+    formulation_reason: str = ""
 
     @property
     def weak(self) -> np.ndarray:
@@ -295,9 +309,13 @@ class Diagnostics:
             "  terms dropped below the significance bar per equation: "
             f"{np.isfinite(self.pruned).sum(axis=1).tolist()}",
             f"  aliased terms left out: {', '.join(self.aliased) or 'none'}",
+            f"  formulation: {self.formulation_reason or self.formulation}",
             "  derivatives: "
             + (
-                "local quartics, half windows per state "
+                f"none (weak form: {self.n_rows} test functions of half width "
+                f"{self.support_half_width:.3g} in time; the counts above are of them)"
+                if self.formulation == "weak"
+                else "local quartics, half windows per state "
                 f"{self.derivative_half_window.tolist()} samples"
                 if self.derivative_half_window.any()
                 else "measured (or another differentiation)"
@@ -613,16 +631,23 @@ def diagnose(
     final,
     rows,
     entry_flags,
+    row_flags,
     deriv,
     feature_names,
     selection_tol: float,
     method: str,
+    weak=None,
+    covered=None,
+    formulation: str = "",
 ) -> Diagnostics:
     """The diagnostics of a fit from its stages' outcomes: the kept problem
     (:class:`~robust_sindy.selection.problem.Problem`), the noise floor, the choice of
     ``delta`` and ``lam``, the penalised fit, the final selection, the row screen, the
     temporal screen's entry flags, the derivatives, the library's feature names, the
-    ``selection_tol`` given and the Huber ``method``.
+    ``selection_tol`` given and the Huber ``method``; with the weak form, its rows
+    (:class:`~robust_sindy.timeseries.weak.WeakRows`: the counts of the row screen are
+    of test functions, ``row_flags`` their temporal suspects) and the samples ``covered``
+    by the kept ones.
 
     Besides what the stages recorded, it measures: the share of the state noise each
     equation's residuals allow and the library noise with each state's noise so
@@ -662,11 +687,11 @@ def diagnose(
     return Diagnostics(
         n_samples=m,
         n_terms=p,
-        samples_per_term=float(keep.sum() / p),
+        samples_per_term=float((keep if covered is None else covered).sum() / p),
         temporal_flagged_entries=int(entry_flags.sum()),
         temporal_flagged_samples=int(entry_flags.any(axis=1).sum()),
         model_flagged_samples=int((screened & ~deriv.unresolved).sum()),
-        readmitted_samples=int((entry_flags.any(axis=1) & keep).sum()),
+        readmitted_samples=int((row_flags.any(axis=1) & keep).sum()),
         unresolved_samples=int(deriv.unresolved.sum()),
         screening_converged=True if screening is None else bool(screening.converged),
         screening_restarted=False if screening is None else bool(screening.restarted),
@@ -698,4 +723,8 @@ def diagnose(
         pruned=np.ascontiguousarray(final.pruned.T),
         aliased=[feature_names[j] for j in np.flatnonzero(floor.aliased)],
         derivative_half_window=deriv.windows.copy(),
+        formulation="strong" if weak is None else "weak",
+        support_half_width=float("nan") if weak is None else weak.half_width,
+        n_rows=0 if weak is None else weak.n_rows,
+        formulation_reason=formulation,
     )

@@ -61,11 +61,23 @@ from .timeseries.derivatives import (
     derivatives,
     differentiate,
 )
-from .timeseries.temporal import TemporalScreening, temporal_screen
+from .timeseries.temporal import TemporalScreening, noise_flag_bound, temporal_screen
 from .timeseries.trajectories import Trajectories, is_frame, is_series
+from .timeseries.weak import WeakRows, support_half_width, weak_rows
 
-__all__ = ["HuberSINDy", "load_model"]
+__all__ = ["FORMULATIONS", "MIN_ROWS_PER_TERM", "OUTLIER_EVIDENCE", "HuberSINDy", "load_model"]
 
+#: The choices of ``formulation``.
+FORMULATIONS = ("strong", "weak", "auto")
+#: ``formulation="auto"`` keeps the strong form where the temporal screen flagged more
+#: entries than Gaussian noise alone would at its cutoff, beyond this probability (a
+#: binomial bound on the count of all entries): outliers were found, which cost single
+#: samples in the strong form, where the weak form's integrals would rest on their
+#: repairs.
+OUTLIER_EVIDENCE = 1e-3
+#: The weak form needs more test functions than this many per library term (their
+#: centres are placed closer together on short records to reach twice as many).
+MIN_ROWS_PER_TERM = 2
 #: Fits with at most this many samples run BLAS on one thread: its products are then
 #: small and the threads' start-up costs more than they save.
 SMALL_PROBLEM_SAMPLES = 10_000
@@ -92,6 +104,8 @@ class Identification:
     fitted: Fitted
     final: FinalSelection
     diagnostics: Diagnostics
+    weak: WeakRows | None = None
+    covered: np.ndarray | None = None
 
 
 class HuberSINDy(BaseEstimator):
@@ -151,6 +165,14 @@ class HuberSINDy(BaseEstimator):
     derivative_window : {"auto", "fixed"}
         The window of ``differentiation="robust"``: chosen per state from the data (5
         to 65 samples), or 5 samples (the fourth-order central difference).
+    formulation : {"strong", "weak", "auto"}
+        The regression's rows: the samples, with derivatives measured or estimated
+        (``"strong"``), or integrals of the states and the library against test
+        functions, no derivative estimated (``"weak"``,
+        :mod:`robust_sindy.timeseries.weak`; ``t`` is then required); ``"auto"``: the
+        weak form where no ``x_dot`` is given, unless the temporal screen flagged more
+        entries than Gaussian noise would (outliers: ``OUTLIER_EVIDENCE``) or the records
+        are too short for it (``diagnostics_.formulation_reason`` says which and why).
 
     Attributes
     ----------
@@ -168,12 +190,13 @@ class HuberSINDy(BaseEstimator):
     screened_ : ndarray of bool, shape (n_samples,)
         Samples left out of the fit: outliers, and the samples of ``unresolved_``.
     unresolved_ : ndarray of bool, shape (n_samples,)
-        Samples whose estimated derivatives the sampling does not resolve.
+        Samples whose estimated derivatives the sampling does not resolve (none with
+        the weak form, which estimates no derivative).
     temporal_ : TemporalScreening or None
         The temporal screen's flags, repaired states and noise levels.
     derivative_windows_ : ndarray of int (n_states,)
         Half width, in samples, of each state's robust derivative window (0 when
-        ``x_dot`` was given or another ``differentiation`` was used).
+        ``x_dot`` was given, another ``differentiation`` or the weak form was used).
     screening_ : Screening or None
         The row screen's details; its masks cover all samples.
     standardizer_ : Standardizer
@@ -193,8 +216,11 @@ class HuberSINDy(BaseEstimator):
         The ``lam`` path of ``lam="auto"``.
     selection_ : Selection or None
         Scores and candidates of ``lam="auto"``.
-    outliers_ : ndarray of bool, shape (n_samples, n_targets)
-        Residuals under the final model beyond ``delta_``.
+    outliers_ : ndarray of bool, shape (n_rows, n_targets)
+        Residuals under the final model beyond ``delta_``, per sample (per test
+        function with the weak form).
+    weak_ : WeakRows or None
+        The weak form's rows (test functions, half width), when it was used.
     result_ : FitResult
         The penalised fit at ``lam_`` on the kept samples (before threshold and refit).
     bias_dropped_, bias_ratio_, truncation_ratio_, noise_factor_, below_floor_,
@@ -232,6 +258,7 @@ class HuberSINDy(BaseEstimator):
         solver_options: dict | None = None,
         progress: bool = False,
         derivative_window="auto",
+        formulation="auto",
     ):
         self.library = library
         self.delta = delta
@@ -248,6 +275,7 @@ class HuberSINDy(BaseEstimator):
         self.solver_options = solver_options
         self.progress = progress
         self.derivative_window = derivative_window
+        self.formulation = formulation
 
     # ------------------------------------------------------------------ fitting
     def fit(self, x, t=None, x_dot=None, u=None, feature_names=None) -> HuberSINDy:
@@ -275,7 +303,9 @@ class HuberSINDy(BaseEstimator):
         (:mod:`robust_sindy.outofcore`).
         """
         self.check_params()
-        data = Trajectories.from_user(x, t, x_dot, u, feature_names)
+        data = Trajectories.from_user(
+            x, t, x_dot, u, feature_names, need_t=self.formulation != "strong"
+        )
         if data.lazy:
             return self._fit_out_of_core(data)
         small = data.n_samples <= SMALL_PROBLEM_SAMPLES
@@ -284,7 +314,7 @@ class HuberSINDy(BaseEstimator):
         warn(self.diagnostics_)
         return self
 
-    def _identify(self, data: Trajectories) -> Identification:
+    def _identify(self, data: Trajectories, allow_weak: bool = True) -> Identification:
         """The stages of an in-memory fit (see the module docstring)."""
         names = data.feature_names()
         library = clone(self.library) if self.library is not None else PolynomialLibrary()
@@ -298,15 +328,28 @@ class HuberSINDy(BaseEstimator):
             )
         temporal = temporal_screen(data.x, data.t) if self.screen else None
         flags = np.zeros((m, data.n_states), dtype=bool) if temporal is None else temporal.flags
-        deriv = derivatives(
-            data, temporal, self.differentiation, self.derivative_window, self.screen, theta
-        )
-        scaler = Standardizer.from_data(theta, deriv.y)
+        weak, why = self._weak_rows(data, temporal, library, z) if allow_weak else (None, "")
+        if weak is None:
+            deriv = derivatives(
+                data, temporal, self.differentiation, self.derivative_window, self.screen, theta
+            )
+            design, segments, row_flags = theta, data.segments, flags
+        else:
+            # Integrated rows: their targets carry the states' noise, not an estimate's.
+            n_rows = weak.n_rows
+            deriv = Derivatives(
+                weak.b, True, np.zeros(n_rows, dtype=bool), None, np.zeros(data.n_states, int)
+            )
+            design, segments = weak.G, weak.segments
+            row_flags = weak.touched(flags, data)[:, None]
+        scaler = Standardizer.from_data(design, deriv.y)
         noise = noise_columns(library, z, temporal, scaler.theta_scale)
-        problem = Problem(theta, deriv.y, scaler, data.segments, noise)
+        if weak is not None:
+            noise = weak.noise(noise, data)
+        problem = Problem(design, deriv.y, scaler, segments, noise)
         pilot = huber_method(self.method)
         rows = screen_samples(
-            problem, flags, deriv.unresolved, measured=deriv.measured, method=pilot,
+            problem, row_flags, deriv.unresolved, measured=deriv.measured, method=pilot,
             screen=self.screen,
         )  # fmt: skip
         kept = problem.keep(rows.keep)
@@ -332,15 +375,69 @@ class HuberSINDy(BaseEstimator):
         else:
             nan = np.full(fitted.coef.shape, np.nan)
             final = FinalSelection(fitted.coef, nan, nan.copy(), nan.copy())
+        covered = None if weak is None else weak.covered(rows.keep)
         report = diagnose(
             kept=kept, floor=floor, choice=choice, fitted=fitted, final=final, rows=rows,
-            entry_flags=flags, deriv=deriv, feature_names=library.get_feature_names(),
-            selection_tol=self.selection_tol, method=pilot,
+            entry_flags=flags, row_flags=row_flags, deriv=deriv,
+            feature_names=library.get_feature_names(), selection_tol=self.selection_tol,
+            method=pilot, weak=weak, covered=covered, formulation=why,
         )  # fmt: skip
         return Identification(
             data, library, theta, temporal, deriv, problem, rows, floor, choice, fitted, final,
-            report,
+            report, weak, covered,
         )  # fmt: skip
+
+    def _weak_rows(self, data: Trajectories, temporal, library, z) -> tuple[WeakRows | None, str]:
+        """The weak form of the records, when ``formulation`` asks for it (``"auto"``:
+        states only, and no more entries flagged by the temporal screen than Gaussian
+        noise gives, :func:`noise_flag_bound`), and why: the repaired
+        states (the raw ones without the screen) integrated against test functions whose
+        width the screen's noise levels set."""
+        if self.formulation == "strong":
+            return None, "strong form (formulation='strong')"
+        if self.formulation == "auto" and data.x_dot is not None:
+            return None, "strong form: the derivatives were measured (formulation='auto')"
+        screen = temporal if temporal is not None else temporal_screen(data.x, data.t)
+        flagged, bound = (
+            int(screen.flags.sum()),
+            noise_flag_bound(screen.flags.size, OUTLIER_EVIDENCE),
+        )
+        if self.formulation == "auto" and flagged > bound:
+            return None, (
+                f"strong form: the temporal screen flagged {flagged} entries "
+                f"({100 * flagged / screen.flags.size:.2g} %), more than Gaussian noise "
+                f"gives ({bound}): outliers cost single samples in the strong form, where the "
+                "weak form's integrals would rest on their repairs (formulation='auto')"
+            )
+        support = support_half_width(data, screen)
+        states = screen.repaired if temporal is not None else np.vstack(data.x)
+        inputs = z.copy()
+        inputs[:, : data.n_states] = states  # the library of the repaired states
+        terms = library.n_output_features_
+        rows = weak_rows(
+            data, states, library.transform(inputs), support.half_width,
+            min_rows=2 * MIN_ROWS_PER_TERM * terms,
+        )  # fmt: skip
+        if rows.n_rows <= MIN_ROWS_PER_TERM * terms:
+            if self.formulation == "weak":
+                raise ValueError(
+                    f"the weak form has {rows.n_rows} test functions of half width "
+                    f"{support.samples:.0f} samples for {terms} terms (at least "
+                    f"{MIN_ROWS_PER_TERM * terms + 1} are needed): the records are too "
+                    "short for it; use formulation='strong' or a smaller library"
+                )
+            return None, (
+                f"strong form: the weak form would have {rows.n_rows} test functions for "
+                f"{terms} terms (formulation='auto')"
+            )
+        why = (
+            "weak form (formulation='weak')"
+            if self.formulation == "weak"
+            else "weak form: states only, no outliers found by the temporal screen; test "
+            f"functions of half width {support.samples:.0f} samples, from the states' noise "
+            "(formulation='auto')"
+        )
+        return rows, why
 
     def _set_fitted(self, found: Identification) -> None:
         """The fitted attributes, from the stages' outcomes (the only place they are set)."""
@@ -350,10 +447,15 @@ class HuberSINDy(BaseEstimator):
         self.library_ = found.library
         self.temporal_ = found.temporal
         self.derivative_windows_ = found.deriv.windows
-        self.unresolved_ = found.deriv.unresolved
+        self.unresolved_ = (
+            found.deriv.unresolved
+            if found.weak is None
+            else np.zeros(found.data.n_samples, dtype=bool)
+        )
         self.standardizer_ = found.problem.scaler
         self.screening_ = found.rows.screening
-        self.screened_ = ~found.rows.keep
+        self.screened_ = ~found.rows.keep if found.weak is None else ~found.covered
+        self.weak_ = found.weak
         self.aliased_ = found.floor.aliased
         self.library_noise_ = found.floor.library_noise
         self.selection_tol_ = found.floor.selection_tol
@@ -372,15 +474,22 @@ class HuberSINDy(BaseEstimator):
         self.significance_ = report.significance.copy()
         self.coef_ = np.ascontiguousarray(final.coef.T)
         self.support_ = self.coef_ != 0
-        self.outliers_ = np.abs(found.problem.y - found.theta @ final.coef) > self.delta_
+        self.outliers_ = np.abs(found.problem.y - found.problem.theta @ final.coef) > self.delta_
         self.diagnostics_ = report
 
     def _fit_out_of_core(self, data: Trajectories) -> HuberSINDy:
         """Dask arrays: the model is chosen on a sample in memory
         (:func:`robust_sindy.outofcore.sample`, all the stages of a fit), then refitted on
         every sample out of core (:func:`robust_sindy.outofcore.refit`)."""
+        if self.formulation == "weak":
+            raise ValueError(
+                "formulation='weak' is fitted in memory only: the out-of-core refit "
+                "differentiates chunk by chunk; pass formulation='strong' or 'auto' for Dask "
+                "arrays"
+            )
         chosen = outofcore.sample(data)
-        self._set_fitted(self._identify(chosen))
+        # The refit of every chunk is the strong form's: so is the sample's.
+        self._set_fitted(self._identify(chosen, allow_weak=False))
         warn(self.diagnostics_, stacklevel=4)
         done = outofcore.refit(self, data, chosen)
         self.coef_sample_ = self.coef_
@@ -413,6 +522,8 @@ class HuberSINDy(BaseEstimator):
             if not isinstance(getattr(self, name), bool):
                 raise ValueError(f"{name} must be True or False; got {getattr(self, name)!r}")
         check_differentiation(self.differentiation)
+        if self.formulation not in FORMULATIONS:
+            raise ValueError(f"formulation must be one of {FORMULATIONS}; got {self.formulation!r}")
         if self.derivative_window not in DERIVATIVE_WINDOWS:
             raise ValueError(
                 f"derivative_window must be one of {DERIVATIVE_WINDOWS}; "

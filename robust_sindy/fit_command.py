@@ -281,6 +281,7 @@ def run(
     derivatives=None,
     delta="auto",
     lam="auto",
+    formulation="auto",
     progress=True,
     echo=print,
 ) -> list[Path]:
@@ -306,6 +307,7 @@ def run(
         lam=lam,
         differentiation=job.differentiation,
         progress=progress,
+        formulation=formulation,
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -341,6 +343,8 @@ def _summary(model, job, source: str, messages) -> list[str]:
         + (
             f"; derivatives from columns {job.derivatives}"
             if job.derivatives
+            else "; no derivatives (the weak form)"
+            if d.formulation == "weak"
             else f"; derivatives by differentiation={job.differentiation!r}"
         ),
         f"library: {len(model.get_feature_names())} terms",

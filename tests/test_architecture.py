@@ -10,7 +10,7 @@ import robust_sindy
 
 PACKAGE = pathlib.Path(robust_sindy.__file__).parent
 ROOT = PACKAGE.parent
-COMMANDS = {"cli", "fit_command", "reproduce", "bench", "zoo"}
+COMMANDS = {"cli", "fit_command", "reproduce", "bench", "zoo", "frontier"}
 
 
 @pytest.fixture(scope="module")

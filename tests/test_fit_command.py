@@ -168,3 +168,21 @@ def test_the_lynx_hare_example_runs(tmp_path, capsys):
     assert "samples per library term" in text
     saved = json.loads((tmp_path / "model.json").read_text())
     assert saved["feature_names"] == ["hare", "lynx"]
+
+
+def test_fit_in_the_weak_form_says_so_and_saves_the_choice(tmp_path, capsys):
+    data = rs.systems.Lorenz().generate(t_end=10.0)
+    rng = np.random.default_rng(2)
+    x = data.x + 0.05 * np.sqrt(np.mean(data.x**2, axis=0)) * rng.normal(size=data.x.shape)
+    frame = pd.DataFrame(x, columns=["x", "y", "z"])
+    frame.insert(0, "time", data.t)
+    path = tmp_path / "noisy.csv"
+    frame.to_csv(path, index=False)
+    out = tmp_path / "res"
+    assert main(["fit", str(path), "--out", str(out), "--quiet", "--formulation", "weak"]) == 0
+    text = capsys.readouterr().out
+    assert "no derivatives (the weak form)" in text
+    assert "formulation: weak form (formulation='weak')" in text
+    model = rs.load_model(out / "model.json")
+    assert model.get_params()["formulation"] == "weak"
+    np.testing.assert_array_equal(model.coef_.T != 0, rs.systems.Lorenz().true_coef() != 0)

@@ -126,7 +126,7 @@ def test_estimated_derivatives_keep_a_term_under_the_floor_at_the_higher_bar():
     t, x, _ = _rossler(0)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        model = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t)
+        model = HuberSINDy(library=PolynomialLibrary(degree=2), formulation="strong").fit(x, t)
     true = np.zeros((3, 10), dtype=bool)
     true[0, [2, 3]] = true[1, [1, 2]] = true[2, [0, 3, 6]] = True
     assert np.array_equal(model.support_, true)
@@ -167,7 +167,10 @@ def test_with_estimated_derivatives_the_bar_is_higher():
 
     data = Lorenz().generate(t_end=5.0)
     measured = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
-    estimated = HuberSINDy().fit(data.x, data.t).diagnostics_
+    estimated = HuberSINDy(formulation="strong").fit(data.x, data.t).diagnostics_
+    # the weak form's rows are measured integrals: the bar of measured derivatives
+    weak = HuberSINDy(formulation="weak").fit(data.x, data.t).diagnostics_
+    assert weak.significance_level == SIGNIFICANCE
     assert measured.significance_level == SIGNIFICANCE < SIGNIFICANCE_ESTIMATED
     assert estimated.significance_level == SIGNIFICANCE_ESTIMATED
     # a term at t = 7 passes the bar of measured derivatives, not that of estimated ones

@@ -30,7 +30,10 @@ from ..core.threads import map_threads
 from ..core.validation import as_float_array, check_int, check_positive
 from . import _temporal_kernels
 
-__all__ = ["TemporalScreening", "temporal_screen"]
+__all__ = ["CUTOFF", "TemporalScreening", "noise_flag_bound", "temporal_screen"]
+
+#: Robust standard deviations beyond which an entry is flagged (``temporal_screen``).
+CUTOFF = 3.5
 
 #: Floor of the temporal screen's scales relative to the largest magnitude of a
 #: component (about 4500 rounding units): a component constant up to rounding (a state
@@ -395,7 +398,7 @@ def temporal_screen(
     *,
     half_window: int = 4,
     degree: int = 4,
-    cutoff: float = 3.5,
+    cutoff: float = CUTOFF,
     scale_window: int = 20,
 ) -> TemporalScreening:
     """Flag entries of sampled trajectories that are inconsistent with their neighbours.
@@ -498,3 +501,15 @@ def temporal_screen(
 
 #: Samples of the running median that estimates the smooth bias of a local fit.
 _BIAS_WINDOW = 7
+
+
+def noise_flag_bound(entries: int, evidence: float = 1e-3, cutoff: float = CUTOFF) -> int:
+    """The most entries of ``entries`` that :func:`temporal_screen` flags on Gaussian
+    noise alone, but for a probability ``evidence``: each entry beyond ``cutoff``
+    standard deviations with probability ``2 Q(cutoff)`` (4.7e-4 at 3.5), the count
+    binomial.  More flags than this are evidence of outliers (or of excursions the
+    sampling does not resolve)."""
+    import scipy.stats
+
+    rate = 2.0 * scipy.stats.norm.sf(cutoff)
+    return int(scipy.stats.binom.isf(evidence, int(entries), rate))

@@ -1,0 +1,129 @@
+"""Polynomial flows of the dysts database, with their true coefficients.
+
+Every continuous-time system of `dysts <https://github.com/williamgilpin/dysts>`_ with at
+most four states whose right-hand side is a polynomial of degree at most three
+(:func:`polynomial_systems`), simulated locally (:func:`simulate_system`): the systems
+of the zoo (:mod:`robust_sindy.zoo`) and of the noise frontier
+(:mod:`robust_sindy.frontier`).
+
+* The true coefficients come from the right-hand side itself: an exact least-squares fit
+  of the full monomial library on random points (relative residual below ``1e-9``), the
+  entries below ``1e-9`` of the largest set to zero; the library degree is the smallest
+  that reproduces the right-hand side.
+* Trajectories are integrated locally (``scipy.integrate.solve_ivp``, DOP853, tolerance
+  ``1e-10``) on the identified polynomial, from the system's initial condition after a
+  burn-in that depends on the seed, at ``pts_per_period`` samples per dominant period.
+
+Needs dysts (the extra ``zoo``).
+"""
+
+from __future__ import annotations
+
+import warnings
+from dataclasses import dataclass
+from itertools import combinations_with_replacement
+
+import numpy as np
+import scipy.integrate
+
+__all__ = ["ZooSystem", "polynomial_systems", "simulate_system"]
+
+
+_COEF_CUT = 1e-9
+
+
+@dataclass
+class ZooSystem:
+    """A polynomial flow: its monomials, true coefficients and sampling."""
+
+    name: str
+    n_states: int
+    degree: int
+    powers: list  # monomials as tuples of state indices
+    coef: np.ndarray  # (p, n) true coefficients
+    ic: np.ndarray
+    dt: float
+
+    def library_matrix(self, x: np.ndarray) -> np.ndarray:
+        out = np.ones((x.shape[0], len(self.powers)))
+        for j, combo in enumerate(self.powers):
+            for i in combo:
+                out[:, j] *= x[:, i]
+        return out
+
+    def rhs(self, x: np.ndarray) -> np.ndarray:
+        return self.library_matrix(np.atleast_2d(x)) @ self.coef
+
+
+def _powers(n: int, degree: int) -> list:
+    return [c for d in range(degree + 1) for c in combinations_with_replacement(range(n), d)]
+
+
+_CACHE: dict = {}
+
+
+def polynomial_systems(max_states: int = 4, max_degree: int = 3) -> list[ZooSystem]:
+    """The dysts flows whose right-hand side is a polynomial (see the module docstring)."""
+    key = (max_states, max_degree)
+    if key in _CACHE:
+        return _CACHE[key]
+    import dysts.flows as flows
+    from dysts.systems import get_attractor_list
+
+    out = []
+    rng = np.random.default_rng(0)
+    for name in get_attractor_list():
+        try:
+            system = getattr(flows, name)()
+        except Exception:  # a system dysts cannot build here is not in the zoo
+            continue
+        n = int(system.dimension)
+        if n > max_states or getattr(system, "delay", False):
+            continue
+        if getattr(system, "nonautonomous", False):
+            continue
+        ic = np.asarray(system.ic, dtype=float).ravel()
+        x = ic + rng.normal(size=(60 * n * n, n)) * (np.abs(ic) + 1.0)
+        with warnings.catch_warnings(), np.errstate(all="ignore"):
+            warnings.simplefilter("ignore")
+            try:
+                f = np.array([np.asarray(system.rhs(v, 0.0), float) for v in x])
+            except Exception:
+                continue
+        if f.shape != x.shape or not np.all(np.isfinite(f)):
+            continue
+        for degree in range(1, max_degree + 1):
+            powers = _powers(n, degree)
+            zs = ZooSystem(name, n, degree, powers, np.zeros((len(powers), n)), ic, 0.0)
+            th = zs.library_matrix(x)
+            coef = np.linalg.lstsq(th, f, rcond=None)[0]
+            if np.linalg.norm(th @ coef - f) <= 1e-9 * np.linalg.norm(f):
+                coef[np.abs(coef) < _COEF_CUT * np.abs(coef).max()] = 0.0
+                zs.coef = coef
+                zs.degree = max(degree, 2)
+                if zs.degree != degree:
+                    zs.powers = _powers(n, zs.degree)
+                    zs.coef = np.vstack([coef, np.zeros((len(zs.powers) - len(powers), n))])
+                zs.dt = float(system.period) / 100.0
+                out.append(zs)
+                break
+    _CACHE[key] = out
+    return out
+
+
+def simulate_system(system: ZooSystem, n_samples: int, seed: int, pts_per_period: int = 100):
+    """True states and derivatives: ``n_samples`` samples after a seed-dependent burn-in."""
+    dt = system.dt * 100.0 / pts_per_period
+    burn = dt * n_samples * (0.5 + (seed % 7) / 7.0)
+
+    def rhs(_t, v):
+        return system.rhs(v)[0]
+
+    t_eval = burn + dt * np.arange(n_samples)
+    sol = scipy.integrate.solve_ivp(
+        rhs, (0.0, t_eval[-1]), system.ic, method="DOP853", t_eval=t_eval, rtol=1e-10, atol=1e-10
+    )
+    if not sol.success or sol.y.shape[1] != n_samples or not np.all(np.isfinite(sol.y)):
+        raise RuntimeError(f"{system.name}: integration failed ({sol.message})")
+    x = sol.y.T
+    return t_eval - t_eval[0], x, system.rhs(x)

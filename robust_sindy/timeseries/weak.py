@@ -1,0 +1,301 @@
+"""The weak (integral) form: the regression's rows as integrals against test functions.
+
+For a test function :math:`\\phi` with compact support inside a trajectory,
+integration by parts turns :math:`\\dot x_k = \\Theta(x) \\xi_k` into
+
+.. math::
+
+    -\\int \\phi'(t)\\, x_k(t)\\, dt = \\Big(\\int \\phi(t)\\, \\Theta(x(t))\\, dt\\Big) \\xi_k ,
+
+exactly, whatever the support: no derivative is estimated, and the noise of the states
+is averaged over the support.  With quadrature weights on the sample times (product
+integration: the samples interpolated by local cubics, their product with the test
+function integrated exactly, which is accurate on irregular times) row ``r`` is
+``b_r = -sum_i W'_ri x(t_i)`` and ``G_r = sum_i W_ri Theta(x(t_i))``, and each
+equation solves the same Huber + L1 problem on ``(G, b)`` (SPEC §9).
+
+* Test functions: :math:`\\phi(t) = (1 - s^2)^4`, :math:`s = (t - c)/h`, centres every
+  ``h / 4`` (each sample lies under about eight of them), supports inside each
+  trajectory.
+* The half width ``h`` (:func:`support_half_width`), in units of time: the test
+  function's spectrum falls to half its peak at the frequency where each state's
+  spectrum meets ten times the white-noise floor that the temporal screen measured
+  (the widest over the states with a signal above their noise): the test functions
+  pass the band where the signal dominates and average the noise beyond it; at least
+  ``MIN_SUPPORT_SAMPLES`` steps, where the quadrature is accurate.  Rescaling time
+  rescales ``h``: unit-free.
+* Entries the temporal screen flagged enter the integrals by their repaired values; the
+  rows whose support holds a flagged entry are the row screen's suspects.
+
+Read more in the user guide: :doc:`/guide/derivatives`.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import numpy as np
+import scipy.signal
+
+from .temporal import TemporalScreening
+from .trajectories import Trajectories, slices
+
+__all__ = [
+    "HALF_AMPLITUDE",
+    "MIN_SUPPORT_SAMPLES",
+    "POWER",
+    "Support",
+    "WeakRows",
+    "support_half_width",
+    "trapezoid_weights",
+    "weak_rows",
+    "weight_functions",
+]
+
+#: The exponent ``p`` of the test functions ``(1 - s^2)^p``.
+POWER = 4
+#: Where the spectrum of ``(1 - s^2)^4`` on ``[-1, 1]`` falls to half its peak (in
+#: ``omega h``).
+HALF_AMPLITUDE = 3.798
+#: A state's spectrum meets its noise at this many times the white-noise floor.
+NOISE_FLOOR_FACTOR = 10.0
+#: The support holds at least this many samples on each side of its centre: the product
+#: integration's cubics are then accurate to well below the noise of nearly noise-free
+#: states (tested on Lorenz, uniform and irregular times).
+MIN_SUPPORT_SAMPLES = 15
+#: Centres of consecutive test functions are this fraction of ``h`` apart (or closer,
+#: down to ``MIN_SPACING``, where the records are short for the library).
+SPACING, MIN_SPACING = 0.25, 0.0625
+
+
+def trapezoid_weights(t: np.ndarray) -> np.ndarray:
+    """Weights of the trapezoid rule on the sample times ``t`` (any spacing)."""
+    w = np.empty_like(t, dtype=float)
+    if t.size == 1:
+        w[0] = 0.0
+        return w
+    d = np.diff(t)
+    w[0], w[-1] = d[0] / 2, d[-1] / 2
+    w[1:-1] = (d[:-1] + d[1:]) / 2
+    return w
+
+
+#: Gauss-Legendre nodes and weights on [0, 1] for the product integration (exact for
+#: the test function, a polynomial of degree 2 POWER on its support, times a cubic).
+_NODES, _NODE_WEIGHTS = np.polynomial.legendre.leggauss(POWER + 3)
+_NODES, _NODE_WEIGHTS = (_NODES + 1.0) / 2.0, _NODE_WEIGHTS / 2.0
+
+
+def _bump(s: np.ndarray, h: float):
+    """The test function ``(1 - s^2)^p`` and its derivative in time at ``s`` (|s| <= 1)."""
+    base = 1.0 - s**2
+    return base**POWER, -2.0 * POWER * s * base ** (POWER - 1) / h
+
+
+def _stencils(t: np.ndarray, first: int, last: int) -> np.ndarray:
+    """For each interval ``[t_j, t_j+1]``, ``first <= j < last``, the four samples of
+    its cubic: ``j - 1 .. j + 2``, shifted inside the record at its ends."""
+    j = np.arange(first, last)
+    start = np.clip(j - 1, 0, max(t.size - 4, 0))
+    return start[:, None] + np.arange(min(4, t.size))[None, :]
+
+
+def _lagrange(t: np.ndarray, stencil: np.ndarray, nodes: np.ndarray) -> np.ndarray:
+    """The cubic Lagrange basis of each interval's ``stencil`` (J x 4) at its ``nodes``
+    (J x g), in time relative to the interval (J x g x 4)."""
+    ts = t[stencil]
+    origin = ts[:, :1]
+    ts, x = ts - origin, nodes - origin
+    out = np.ones((*nodes.shape, ts.shape[1]))
+    for q in range(ts.shape[1]):
+        for r in range(ts.shape[1]):
+            if r != q:
+                out[..., q] *= (x - ts[:, r : r + 1]) / (ts[:, q : q + 1] - ts[:, r : r + 1])
+    return out
+
+
+def weight_functions(t: np.ndarray, h: float, spacing: float = SPACING):
+    """``(phi, dphi, centres)``: the quadrature weights (arrays K x m) of the integrals
+    of the test functions and of their time derivatives against values sampled at ``t``,
+    and the centres (K,), every ``spacing * h`` from ``t[0] + h`` to ``t[-1] - h``
+    (K = 0 when the record is shorter than ``2 h``).
+
+    Product integration: the sampled values are taken as the cubic through the four
+    samples around each interval, and its product with the (polynomial) test function is
+    integrated exactly (Gauss-Legendre), so that irregular sample times cost accuracy
+    only through the values' own smoothness.  ``phi @ v`` approximates
+    ``int phi(t) v(t) dt``.
+    """
+    lo, hi = t[0] + h, t[-1] - h
+    m = t.size
+    if hi < lo or m < 4:
+        return np.zeros((0, m)), np.zeros((0, m)), np.zeros(0)
+    count = int(np.floor((hi - lo) / (spacing * h) + 1e-9)) + 1
+    centres = np.linspace(lo, hi, count)
+    phi, dphi = np.zeros((count, m)), np.zeros((count, m))
+    for r, c in enumerate(centres):
+        first = max(int(np.searchsorted(t, c - h, side="right")) - 1, 0)
+        last = min(int(np.searchsorted(t, c + h, side="left")), m - 1)
+        a = np.maximum(t[first:last], c - h)
+        b = np.minimum(t[first + 1 : last + 1], c + h)
+        nodes = a[:, None] + (b - a)[:, None] * _NODES[None, :]
+        weights = (b - a)[:, None] * _NODE_WEIGHTS[None, :]
+        stencil = _stencils(t, first, last)
+        basis = _lagrange(t, stencil, nodes)  # (J, g, 4)
+        value, slope = _bump((nodes - c) / h, h)
+        for out, f in ((phi, value), (dphi, slope)):
+            shares = np.einsum("jg,jgq->jq", f * weights, basis)
+            np.add.at(out[r], stencil.ravel(), shares.ravel())
+    return phi, dphi, centres
+
+
+def _corner(x: np.ndarray, t: np.ndarray, sigma: float) -> float | None:
+    """The highest frequency at which the spectrum of ``x`` (Welch's estimate on a
+    uniform grid of the median step) exceeds ``NOISE_FLOOR_FACTOR`` times the floor of
+    white noise of scale ``sigma``; None where it never does (no signal above the
+    noise: nothing for the test functions to resolve)."""
+    dt = float(np.median(np.diff(t)))
+    grid = t[0] + dt * np.arange(round((t[-1] - t[0]) / dt) + 1)
+    values = np.interp(grid, t, x)
+    f, pxx = scipy.signal.welch(values - values.mean(), fs=1.0 / dt, nperseg=min(256, grid.size))
+    floor = 2.0 * sigma**2 * dt
+    above = np.flatnonzero(pxx[1:] > NOISE_FLOOR_FACTOR * floor) + 1
+    return float(f[above.max()]) if above.size else None
+
+
+@dataclass(frozen=True)
+class Support:
+    """Outcome of :func:`support_half_width`.
+
+    Attributes
+    ----------
+    half_width : float
+        The test functions' half width (time units).
+    noise_limited : bool
+        Whether the states' noise asked for wider supports than the quadrature needs
+        (``MIN_SUPPORT_SAMPLES`` steps).
+    samples : float
+        The half width in median steps.
+    """
+
+    half_width: float
+    noise_limited: bool
+    samples: float
+
+
+def support_half_width(data: Trajectories, temporal: TemporalScreening) -> Support:
+    """The test functions' half width (time units; see the module docstring), at least
+    ``MIN_SUPPORT_SAMPLES`` median steps of every trajectory."""
+    states = [temporal.repaired[seg] for seg in data.segments]
+    h = 0.0
+    steps = []
+    for x, t in zip(states, data.t, strict=True):
+        if x.shape[0] < 8:
+            continue
+        steps.append(float(np.median(np.diff(t))))
+        for k in range(x.shape[1]):
+            sigma = float(temporal.scale[k])
+            if not np.isfinite(sigma) or sigma <= 0 or np.ptp(x[:, k]) == 0:
+                continue
+            corner = _corner(x[:, k], t, sigma)
+            if corner is not None:
+                h = max(h, HALF_AMPLITUDE / (2.0 * np.pi * corner))
+    if not steps:
+        raise ValueError("the weak form needs trajectories of at least 8 samples")
+    least = MIN_SUPPORT_SAMPLES * max(steps)
+    width = max(h, least)
+    return Support(width, h > least, width / max(steps))
+
+
+@dataclass(frozen=True)
+class WeakRows:
+    """Outcome of :func:`weak_rows`.
+
+    Attributes
+    ----------
+    G : ndarray (K, p)
+        The library integrated against the test functions.
+    b : ndarray (K, n)
+        Minus the states integrated against the test functions' derivatives.
+    half_width : float
+        The test functions' half width ``h`` (time units).
+    segments : list of slice
+        Each trajectory's rows.
+    support : list of ndarray of bool (K_i, m_i)
+        Per trajectory, the samples under each test function.
+    weights : list of ndarray (K_i, m_i)
+        Per trajectory, the test functions times the quadrature weights (``phi``).
+    """
+
+    G: np.ndarray
+    b: np.ndarray
+    half_width: float
+    segments: list
+    support: list
+    weights: list
+
+    @property
+    def n_rows(self) -> int:
+        return int(self.G.shape[0])
+
+    def touched(self, entry_flags: np.ndarray, data: Trajectories) -> np.ndarray:
+        """Rows whose support holds a sample with a flagged entry (``entry_flags`` m x n)."""
+        out = []
+        for seg, sup in zip(data.segments, self.support, strict=True):
+            out.append(sup.astype(float) @ entry_flags[seg].any(axis=1).astype(float) > 0)
+        return np.concatenate(out) if out else np.zeros(0, dtype=bool)
+
+    def covered(self, keep: np.ndarray) -> np.ndarray:
+        """Samples under at least one of the rows ``keep`` (bool, K)."""
+        out = []
+        for rows, sup in zip(self.segments, self.support, strict=True):
+            out.append(keep[rows].astype(float) @ sup.astype(float) > 0)
+        return np.concatenate(out) if out else np.zeros(0, dtype=bool)
+
+    def integrate(self, per_sample: np.ndarray, data: Trajectories) -> np.ndarray:
+        """``sum_i w_i phi_r(t_i) v(t_i)`` of every row, for values ``v`` of all samples."""
+        return np.vstack(
+            [w @ per_sample[seg] for seg, w in zip(data.segments, self.weights, strict=True)]
+        )
+
+    def noise(self, noise_columns, data: Trajectories):
+        """The noise of the weak rows' library columns, per state, from that of the
+        samples (``noise_columns``, per state m x p): noise at different samples is
+        independent, so a row's has variance ``sum_i (w_i phi_r(t_i))^2 N_i^2``; it is
+        taken as ``sqrt(sum_i (w_i phi_r)^2)`` times the ``(w_i phi_r)^2``-weighted mean
+        of the samples' noise columns (exact where those are constant over the
+        support, and linear in them, as the strong form's are)."""
+        if noise_columns is None:
+            return None
+        out = []
+        for a in noise_columns:
+            rows = []
+            for seg, w in zip(data.segments, self.weights, strict=True):
+                w2 = w**2
+                total = np.maximum(w2.sum(axis=1, keepdims=True), np.finfo(float).tiny)
+                rows.append(np.sqrt(total) * (w2 @ a[seg]) / total)
+            out.append(np.vstack(rows))
+        return out
+
+
+def weak_rows(
+    data: Trajectories, states: np.ndarray, theta: np.ndarray, h: float, min_rows: int = 0
+) -> WeakRows:
+    """The weak form of every trajectory: ``states`` (m, n) and the library matrix
+    ``theta`` (m, p) of all samples (stacked as in ``data``) integrated against test
+    functions of half width ``h``, their centres ``SPACING * h`` apart, or closer (down to
+    ``MIN_SPACING * h``) where that gives fewer than ``min_rows`` rows in all."""
+    room = sum(max(t[-1] - t[0] - 2 * h, 0.0) for t in data.t)
+    spacing = SPACING
+    if min_rows > 0 and room > 0:
+        spacing = float(np.clip(room / (h * min_rows), MIN_SPACING, SPACING))
+    Gs, bs, supports, weights, counts = [], [], [], [], []
+    for seg, t in zip(data.segments, data.t, strict=True):
+        phi, dphi, _ = weight_functions(t, h, spacing)
+        Gs.append(phi @ theta[seg])
+        bs.append(-dphi @ states[seg])
+        supports.append(phi != 0)
+        weights.append(phi)
+        counts.append(phi.shape[0])
+    G, b = np.vstack(Gs), np.vstack(bs)
+    return WeakRows(G, b, float(h), slices(counts), supports, weights)

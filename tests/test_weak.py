@@ -1,0 +1,187 @@
+"""The weak form: its quadrature, its automatic support, and the estimator on its rows."""
+
+import warnings
+
+import numpy as np
+import pytest
+
+import robust_sindy as rs
+from robust_sindy.estimator import OUTLIER_EVIDENCE
+from robust_sindy.timeseries.temporal import noise_flag_bound, temporal_screen
+from robust_sindy.timeseries.trajectories import Trajectories
+from robust_sindy.timeseries.weak import (
+    MIN_SUPPORT_SAMPLES,
+    support_half_width,
+    trapezoid_weights,
+    weak_rows,
+    weight_functions,
+)
+
+LORENZ = rs.systems.Lorenz()
+TRUE = LORENZ.true_coef()
+
+
+def _lorenz(t_end=20.0, dt=0.01):
+    return LORENZ.generate(t_end=t_end, dt=dt)
+
+
+def test_trapezoid_weights_integrate_on_irregular_times():
+    rng = np.random.default_rng(0)
+    t = np.sort(np.concatenate([[0.0, 3.0], rng.uniform(0.0, 3.0, 400)]))
+    assert abs(trapezoid_weights(t) @ np.sin(t) - (1 - np.cos(3.0))) < 1e-4
+
+
+@pytest.mark.parametrize("irregular", [False, True])
+def test_integration_by_parts_holds_on_the_samples(irregular):
+    # -int phi' x = int phi xdot exactly; the trapezoid rule on 20 samples per half
+    # width makes it hold to 1e-4 of the integrals, on uniform or random sample times.
+    data = _lorenz()
+    t, x, xdot = data.t, data.x, data.x_dot
+    if irregular:
+        rng = np.random.default_rng(1)
+        keep = np.sort(rng.choice(t.size, 1500, replace=False))
+        t, x, xdot = t[keep], x[keep], xdot[keep]
+    phi, dphi, centres = weight_functions(t, 0.2)
+    assert centres.min() - 0.2 >= t[0] - 1e-12 and centres.max() + 0.2 <= t[-1] + 1e-12
+    lhs, rhs = -dphi @ x, phi @ xdot
+    assert np.linalg.norm(lhs - rhs) <= 1e-3 * np.linalg.norm(rhs)
+
+
+def test_the_support_is_unit_free_and_grows_with_the_noise():
+    data = _lorenz()
+    rng = np.random.default_rng(2)
+    noise = rng.normal(size=data.x.shape) * np.sqrt(np.mean(data.x**2, axis=0))
+    widths = []
+    for level in (0.01, 0.2):
+        x = data.x + level * noise
+        h = support_half_width(Trajectories.from_user(x, data.t), temporal_screen(x, data.t))
+        d, c = np.array([1e-3, 10.0, 1e3]), 100.0
+        scaled = support_half_width(
+            Trajectories.from_user(x * d, data.t * c), temporal_screen(x * d, data.t * c)
+        )
+        assert scaled.half_width == pytest.approx(c * h.half_width, rel=1e-9)
+        assert scaled.noise_limited == h.noise_limited
+        assert h.half_width >= MIN_SUPPORT_SAMPLES * 0.01 * (1 - 1e-9)
+        widths.append(h.half_width)
+    assert widths[1] > widths[0]
+
+
+def test_weak_rows_of_several_trajectories_never_reach_across_them():
+    data = _lorenz(t_end=6.0)
+    a, b = data.x[:300], data.x[300:]
+    ta, tb = data.t[:300], data.t[300:]
+    traj = Trajectories.from_user([a, b], [ta, tb])
+    theta = rs.PolynomialLibrary(2).fit_transform(np.vstack([a, b]))
+    rows = weak_rows(traj, np.vstack([a, b]), theta, 0.2)
+    one = weak_rows(Trajectories.from_user(a, ta), a, theta[:300], 0.2)
+    assert len(rows.segments) == 2
+    np.testing.assert_array_equal(rows.G[rows.segments[0]], one.G)
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_weak_form_identifies_lorenz_from_noisy_states(seed):
+    # 2 % Gaussian noise on every state, no derivatives: the weak form finds the terms
+    # (coefficient error well under 2 %), its fits certified.
+    data = _lorenz()
+    rng = np.random.default_rng(seed)
+    x = data.x + 0.02 * np.sqrt(np.mean(data.x**2, axis=0)) * rng.normal(size=data.x.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        model = rs.HuberSINDy(formulation="weak").fit(x, data.t)
+    coef = model.coef_.T
+    assert np.linalg.norm(coef - TRUE) <= 0.02 * np.linalg.norm(TRUE)
+    assert model.result_.converged and model.result_.kkt.max() <= 1e-8
+    assert model.diagnostics_.formulation == "weak" and model.weak_.n_rows > 100
+    assert model.screened_.shape == (x.shape[0],)
+
+
+def test_weak_fit_agrees_with_the_cvxpy_reference_on_the_weak_rows():
+    data = _lorenz(t_end=10.0)
+    rng = np.random.default_rng(5)
+    x = data.x + 0.05 * np.sqrt(np.mean(data.x**2, axis=0)) * rng.normal(size=data.x.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        model = rs.HuberSINDy(formulation="weak").fit(x, data.t)
+    G, b = model.weak_.G, model.weak_.b
+    keep = ~model.screening_.outliers
+    fast = rs.fit(G[keep], b[keep], delta=model.delta_, lam=model.lam_)
+    ref = rs.fit(G[keep], b[keep], method="cvxpy", delta=model.delta_, lam=model.lam_)
+    assert fast.converged and fast.kkt.max() <= 1e-8
+    assert np.all(fast.objective <= ref.objective * (1 + 1e-6))
+    assert np.all(np.abs(fast.objective - ref.objective) <= 1e-5 * np.abs(ref.objective))
+
+
+def test_auto_keeps_measured_derivatives_and_says_which_form_it_used():
+    data = _lorenz(t_end=10.0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        measured = rs.HuberSINDy(formulation="auto").fit(data.x, data.t, x_dot=data.x_dot)
+        rng = np.random.default_rng(3)
+        noisy = data.x + 0.1 * np.sqrt(np.mean(data.x**2, axis=0)) * rng.normal(size=data.x.shape)
+        states = rs.HuberSINDy(formulation="auto").fit(noisy, data.t)
+    assert measured.diagnostics_.formulation == "strong"
+    assert "measured" in measured.diagnostics_.formulation_reason
+    assert states.diagnostics_.formulation == "weak"
+    assert "noise" in states.diagnostics_.formulation_reason
+    assert "formulation:" in repr(states.diagnostics_)
+
+
+def test_auto_keeps_the_strong_form_where_the_temporal_screen_found_outliers():
+    # Gaussian noise alone: the screen flags about as many entries as its cutoff lets
+    # through, and the weak form is used.  The same states with 1 % of the entries
+    # spiked: outliers found, and the strong form keeps them to single samples.
+    data = _lorenz(t_end=10.0)
+    rng = np.random.default_rng(4)
+    rms = np.sqrt(np.mean(data.x**2, axis=0))
+    noisy = data.x + 0.02 * rms * rng.normal(size=data.x.shape)
+    spiked = noisy.copy()
+    hit = rng.random(data.x.shape) < 0.01
+    spiked[hit] += 3.0 * data.x.std(axis=0)[np.nonzero(hit)[1]]
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        gaussian = rs.HuberSINDy().fit(noisy, data.t)
+        outliers = rs.HuberSINDy().fit(spiked, data.t)
+    bound = noise_flag_bound(noisy.size, OUTLIER_EVIDENCE)
+    assert gaussian.temporal_.flags.sum() <= bound
+    assert gaussian.diagnostics_.formulation == "weak"
+    assert "no outliers found" in gaussian.diagnostics_.formulation_reason
+    assert outliers.temporal_.flags.sum() > bound
+    assert outliers.diagnostics_.formulation == "strong" and outliers.weak_ is None
+    assert "more than Gaussian noise" in outliers.diagnostics_.formulation_reason
+
+
+def test_the_noise_flag_bound_holds_on_gaussian_noise():
+    # The temporal screen's flags on pure Gaussian noise around smooth signals stay
+    # within the bound on (nearly) every draw: a rate over 40 draws, not one draw.
+    t = np.linspace(0.0, 20.0, 1500)
+    signal = np.column_stack([np.sin(t), np.cos(1.3 * t), np.sin(0.7 * t) ** 2])
+    over = 0
+    for seed in range(40):
+        rng = np.random.default_rng(seed)
+        x = signal + 0.05 * rng.normal(size=signal.shape)
+        over += temporal_screen(x, t).flags.sum() > noise_flag_bound(x.size, 1e-3)
+    assert over <= 2
+    assert noise_flag_bound(6000, 1e-3) < 0.005 * 6000  # far below any outlier share
+
+
+def test_bad_formulation_and_weak_form_on_dask_are_refused():
+    with pytest.raises(ValueError, match="formulation must be one of"):
+        rs.HuberSINDy(formulation="integral").fit(np.zeros((50, 2)), 0.1)
+    da = pytest.importorskip("dask.array")
+    x = da.from_array(_lorenz(t_end=3.0).x, chunks=100)
+    with pytest.raises(ValueError, match="in memory only"):
+        rs.HuberSINDy(formulation="weak").fit(x, 0.01)
+
+
+def test_ensembles_of_weak_fits_resample_blocks_of_the_records():
+    # Each member's blocks are separate trajectories: test functions never cross them.
+    data = _lorenz()
+    rng = np.random.default_rng(0)
+    x = data.x + 0.05 * np.sqrt(np.mean(data.x**2, axis=0)) * rng.normal(size=data.x.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        ens = rs.EnsembleSINDy(
+            estimator=rs.HuberSINDy(formulation="weak"), n_models=4, random_state=0
+        ).fit(x, data.t)
+    assert ens.n_failed_ == 0 and ens.certified_fraction_ == 1.0
+    np.testing.assert_array_equal(ens.coef_.T != 0, TRUE != 0)
