@@ -183,17 +183,18 @@ def _frontier(args) -> int:
     else:
         levels = frontier.LEVELS if args.levels is None else _levels(args.levels)
         n, methods = args.systems, frontier.METHODS
-    rows = frontier.run(n, args.draw, args.seed, levels, methods, args.jobs, _progress(args))
-    protocol = (
-        frontier.published(jobs=args.jobs, progress=_progress(args)) if args.published else None
-    )
-    command = "robust-sindy frontier" + (" --quick" if args.quick else
-              f" --systems {n} --draw {args.draw} --seed {args.seed}"
-              + (" --published" if args.published else ""))  # fmt: skip
-    print(frontier.table(frontier.summary(rows)))
-    if protocol:
+    if args.published:
+        protocol = frontier.published(jobs=args.jobs, progress=_progress(args))
         print(frontier.protocol_table(protocol))
-    paths = frontier.write(rows, Path(args.out), command, protocol)
+        command = "robust-sindy frontier --published"
+        paths = frontier.write_published(protocol, Path(args.out), command)
+        print("wrote", ", ".join(str(p) for p in paths))
+        return 0
+    rows = frontier.run(n, args.draw, args.seed, levels, methods, args.jobs, _progress(args))
+    command = "robust-sindy frontier" + (" --quick" if args.quick else
+              f" --systems {n} --draw {args.draw} --seed {args.seed}")  # fmt: skip
+    print(frontier.table(frontier.summary(rows)))
+    paths = frontier.write(rows, Path(args.out), command)
     print("wrote", ", ".join(str(p) for p in paths))
     return 0
 
@@ -413,7 +414,9 @@ def main(argv: list[str] | None = None) -> int:
         "--levels", default=None, help="noise levels, comma-separated (0.001,0.01,0.05,0.1,0.2)"
     )
     fro.add_argument(
-        "--published", action="store_true", help="also run the published protocol (slow)"
+        "--published",
+        action="store_true",
+        help="run the published protocol instead (every system; slow)",
     )
     fro.add_argument("--out", type=_folder, default="frontier_results", help="output folder")
     fro.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")

@@ -10,10 +10,11 @@ equations with
   formulation fixed, ``huber_strong`` and ``huber_weak``;
 * the peers on the same data: PySINDy's STLSQ (``stlsq``), its weak form
   (``stlsq_weak``: ``WeakPDELibrary``, K = 200 test functions) and a bagged STLSQ
-  ensemble (``ensemble``), each over a grid of thresholds, the threshold chosen as a
-  user would (``aicc``: the lowest AICc of the derivatives of a held-out trajectory of
-  the same system and noise) and as nobody can (``oracle``: the best support, then the
-  smallest coefficient error, knowing the truth).
+  ensemble (``ensemble``), each over a grid of 13 thresholds (1e-3 to 10, PySINDy's
+  defaults otherwise), the fit chosen as a user would (``aicc``: the
+  lowest AICc of the derivatives of a held-out trajectory of the same system and
+  noise) and as nobody can (``oracle``: the best support, then the smallest
+  coefficient error, knowing the truth).
 
 A case is right when the support is exact; its coefficient error is
 ``||Xi - Xi_true||_F / ||Xi_true||_F``.  :func:`published` runs the published
@@ -43,6 +44,7 @@ __all__ = [
     "summary",
     "table",
     "write",
+    "write_published",
 ]
 
 #: Noise levels, relative to each state's root mean square.
@@ -87,7 +89,7 @@ def _ours(formulation, x, t):
     return model.coef_.T, bool(caught), model.diagnostics_.formulation
 
 
-def _peer(method, threshold, x, t):
+def _peer(method, threshold, x, t, normalize=False):
     import pysindy as ps
 
     if method == "stlsq_weak":
@@ -96,7 +98,7 @@ def _peer(method, threshold, x, t):
         )
     else:
         library = ps.PolynomialLibrary(degree=4)
-    optimizer = ps.STLSQ(threshold=threshold)
+    optimizer = ps.STLSQ(threshold=threshold, normalize_columns=normalize)
     if method == "ensemble":
         optimizer = ps.EnsembleOptimizer(optimizer, bagging=True, n_models=20)
     model = ps.SINDy(feature_library=library, optimizer=optimizer)
@@ -157,7 +159,7 @@ def run_case(system, level: float, seed: int = 0, methods=METHODS, n_samples: in
                 fits.append(_peer(method, threshold, x, t))
             except Exception:  # a peer that fails at a threshold has no model there
                 fits.append(np.full_like(true, np.nan))
-        seconds = (time.perf_counter() - t0) / len(THRESHOLDS)
+        seconds = (time.perf_counter() - t0) / len(fits)
         finite = [c for c in fits if np.all(np.isfinite(c))]
         if not finite:
             row(method, "aicc", np.full_like(true, np.nan), seconds)
@@ -275,6 +277,34 @@ def published(n_systems=None, levels=(0.0, 0.001, 0.01), jobs=2, progress=True):
     return rows
 
 
+def write_published(rows, out, command: str) -> list[Path]:
+    """``published.csv`` and ``published.md`` (:func:`published`'s rows) in ``out``."""
+    import csv
+
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    with open(out / "published.csv", "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)
+    text = [
+        "# The published protocol",
+        "",
+        f"Command: `{command}`. Every polynomial flow of the zoo "
+        f"({len({r['system'] for r in rows})} systems), five training trajectories of "
+        "1000 samples at 100 per period, Gaussian "
+        "noise of the given level times each state's root mean square, states only, "
+        "degree-4 library, `HuberSINDy()` with its defaults; success: coefficient error "
+        "below 0.1. Published: weak-form STLSQ with ensembling and AICc on 70 dysts "
+        "systems (Kaptanoglu et al. 2023).",
+        "",
+        protocol_table(rows),
+        "",
+    ]
+    (out / "published.md").write_text("\n".join(text))
+    return [out / "published.csv", out / "published.md"]
+
+
 def write(rows, out, command: str, protocol=None) -> list[Path]:
     """``frontier.csv``, ``frontier.md`` and ``frontier.png`` in ``out``."""
     import csv
@@ -298,9 +328,9 @@ def write(rows, out, command: str, protocol=None) -> list[Path]:
         f"Command: `{command}`. {len(systems)} systems ({', '.join(systems)}), 2000 "
         "samples at 100 per period, Gaussian noise of the given level times each state's "
         "root mean square, states only, degree-4 library. Cells: exact-support rate / "
-        "rate of coefficient error below 0.1 / median coefficient error. Peers over a "
-        "grid of thresholds: `aicc` chosen by the AICc of a held-out trajectory (as a "
-        "user would), `oracle` the best knowing the truth.",
+        "rate of coefficient error below 0.1 / median coefficient error. Peers over 13 "
+        "thresholds (1e-3 to 10): `aicc` chosen by the AICc of a "
+        "held-out trajectory (as a user would), `oracle` the best knowing the truth.",
         "",
         table(summ),
         "",
