@@ -398,17 +398,16 @@ class HuberSINDy(BaseEstimator):
         if self.formulation == "auto" and data.x_dot is not None:
             return None, "strong form: the derivatives were measured (formulation='auto')"
         screen = temporal if temporal is not None else temporal_screen(data.x, data.t)
-        flagged, bound = (
-            int(screen.flags.sum()),
-            noise_flag_bound(screen.flags.size, OUTLIER_EVIDENCE),
-        )
-        if self.formulation == "auto" and flagged > bound:
-            return None, (
-                f"strong form: the temporal screen flagged {flagged} entries "
-                f"({100 * flagged / screen.flags.size:.2g} %), more than Gaussian noise "
-                f"gives ({bound}): outliers cost single samples in the strong form, where the "
-                "weak form's integrals would rest on their repairs (formulation='auto')"
-            )
+        if self.formulation == "auto":
+            flagged = int(screen.flags.sum())
+            bound = noise_flag_bound(screen.flags.size, OUTLIER_EVIDENCE)
+            if flagged > bound:
+                return None, (
+                    f"strong form: the temporal screen flagged {flagged} entries "
+                    f"({100 * flagged / screen.flags.size:.2g} %), more than Gaussian noise "
+                    f"gives ({bound}): outliers cost single samples in the strong form, where "
+                    "the weak form's integrals would rest on their repairs (formulation='auto')"
+                )
         support = support_half_width(data, screen)
         states = screen.repaired if temporal is not None else np.vstack(data.x)
         inputs = z.copy()

@@ -26,7 +26,7 @@ from itertools import combinations_with_replacement
 import numpy as np
 import scipy.integrate
 
-__all__ = ["ZooSystem", "polynomial_systems", "simulate_system"]
+__all__ = ["ZooSystem", "polynomial_systems", "simulate_system", "write_rows"]
 
 
 _COEF_CUT = 1e-9
@@ -127,3 +127,17 @@ def simulate_system(system: ZooSystem, n_samples: int, seed: int, pts_per_period
         raise RuntimeError(f"{system.name}: integration failed ({sol.message})")
     x = sol.y.T
     return t_eval - t_eval[0], x, system.rhs(x)
+
+
+def write_rows(rows: list[dict], path) -> None:
+    """The per-case rows of a run over the flows (dicts with the same keys) as CSV at
+    ``path``, its folder created."""
+    import csv
+    from pathlib import Path
+
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    with open(path, "w", newline="") as fh:
+        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
+        writer.writeheader()
+        writer.writerows(rows)

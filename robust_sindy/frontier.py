@@ -279,14 +279,10 @@ def published(n_systems=None, levels=(0.0, 0.001, 0.01), jobs=2, progress=True):
 
 def write_published(rows, out, command: str) -> list[Path]:
     """``published.csv`` and ``published.md`` (:func:`published`'s rows) in ``out``."""
-    import csv
+    from .flows import write_rows
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "published.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows(rows, out / "published.csv")
     text = [
         "# The published protocol",
         "",
@@ -305,21 +301,17 @@ def write_published(rows, out, command: str) -> list[Path]:
     return [out / "published.csv", out / "published.md"]
 
 
-def write(rows, out, command: str, protocol=None) -> list[Path]:
+def write(rows, out, command: str) -> list[Path]:
     """``frontier.csv``, ``frontier.md`` and ``frontier.png`` in ``out``."""
-    import csv
-
     import matplotlib
 
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from .flows import write_rows
+
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "frontier.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows(rows, out / "frontier.csv")
     summ = summary(rows)
     systems = sorted({r["system"] for r in rows})
     text = [
@@ -337,8 +329,6 @@ def write(rows, out, command: str, protocol=None) -> list[Path]:
         "![frontier](frontier.png)",
         "",
     ]
-    if protocol:
-        text += ["## The published protocol", "", protocol_table(protocol), ""]
     (out / "frontier.md").write_text("\n".join(text))
     fig, ax = plt.subplots(figsize=(7, 4))
     for method, choice, style in (("huber", "default", "-o"), ("huber_strong", "default", ":o"),

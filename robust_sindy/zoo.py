@@ -21,7 +21,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .flows import ZooSystem, polynomial_systems, simulate_system
+from .flows import ZooSystem, polynomial_systems, simulate_system, write_rows
 
 __all__ = [
     "DERIVATIVES",
@@ -288,7 +288,6 @@ def table(summ: list[dict]) -> str:
 
 def write(rows: list[dict], out, command: str) -> list:
     """``zoo.csv`` (every case), ``zoo.md`` (the table) and ``zoo.png`` in ``out``."""
-    import csv
     from pathlib import Path
 
     import matplotlib
@@ -297,11 +296,7 @@ def write(rows: list[dict], out, command: str) -> list:
     import matplotlib.pyplot as plt
 
     out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "zoo.csv", "w", newline="") as f:
-        writer = csv.DictWriter(f, fieldnames=list(rows[0]))
-        writer.writeheader()
-        writer.writerows(rows)
+    write_rows(rows, out / "zoo.csv")
     summ = summary(rows)
     n_sys = len({r["system"] for r in rows})
     n_seeds = len({r["seed"] for r in rows})

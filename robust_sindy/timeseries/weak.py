@@ -47,7 +47,6 @@ __all__ = [
     "Support",
     "WeakRows",
     "support_half_width",
-    "trapezoid_weights",
     "weak_rows",
     "weight_functions",
 ]
@@ -66,18 +65,6 @@ MIN_SUPPORT_SAMPLES = 15
 #: Centres of consecutive test functions are this fraction of ``h`` apart (or closer,
 #: down to ``MIN_SPACING``, where the records are short for the library).
 SPACING, MIN_SPACING = 0.25, 0.0625
-
-
-def trapezoid_weights(t: np.ndarray) -> np.ndarray:
-    """Weights of the trapezoid rule on the sample times ``t`` (any spacing)."""
-    w = np.empty_like(t, dtype=float)
-    if t.size == 1:
-        w[0] = 0.0
-        return w
-    d = np.diff(t)
-    w[0], w[-1] = d[0] / 2, d[-1] / 2
-    w[1:-1] = (d[:-1] + d[1:]) / 2
-    return w
 
 
 #: Gauss-Legendre nodes and weights on [0, 1] for the product integration (exact for
@@ -251,12 +238,6 @@ class WeakRows:
         for rows, sup in zip(self.segments, self.support, strict=True):
             out.append(keep[rows].astype(float) @ sup.astype(float) > 0)
         return np.concatenate(out) if out else np.zeros(0, dtype=bool)
-
-    def integrate(self, per_sample: np.ndarray, data: Trajectories) -> np.ndarray:
-        """``sum_i w_i phi_r(t_i) v(t_i)`` of every row, for values ``v`` of all samples."""
-        return np.vstack(
-            [w @ per_sample[seg] for seg, w in zip(data.segments, self.weights, strict=True)]
-        )
 
     def noise(self, noise_columns, data: Trajectories):
         """The noise of the weak rows' library columns, per state, from that of the
