@@ -141,8 +141,24 @@ def _bench(args) -> int:
     return 0
 
 
+def _families(text: str) -> tuple:
+    """``--families``: names of the zoo's families, comma-separated."""
+    from .zoo import ALL_FAMILIES
+
+    names = tuple(v.strip() for v in text.split(",") if v.strip())
+    bad = [v for v in names if v not in ALL_FAMILIES]
+    if bad or not names:
+        raise argparse.ArgumentTypeError(
+            f"unknown families {bad or [text]}: choose from {', '.join(ALL_FAMILIES)}"
+        )
+    return names
+
+
 def _zoo(args) -> int:
     from . import zoo
+
+    if args.families is None:
+        args.families = zoo.ALL_FAMILIES
     from .parallel import scheduler
 
     jobs = -1 if args.scheduler else args.jobs
@@ -152,8 +168,10 @@ def _zoo(args) -> int:
                            jobs=jobs, progress=_progress(args))  # fmt: skip
         else:
             rows = zoo.run(n_systems=args.systems, seeds=args.seeds, jobs=jobs,
-                           progress=_progress(args))  # fmt: skip
+                           families=args.families, progress=_progress(args))  # fmt: skip
     command = "robust-sindy zoo" + (" --quick" if args.quick else f" --seeds {args.seeds}")
+    if not args.quick and tuple(args.families) != zoo.ALL_FAMILIES:
+        command += " --families " + ",".join(args.families)
     print(zoo.table(zoo.summary(rows)))
     paths = zoo.write(rows, Path(args.out), command)
     print("wrote", ", ".join(str(p) for p in paths))
@@ -397,6 +415,12 @@ def main(argv: list[str] | None = None) -> int:
     zoo_.add_argument("--systems", type=_count, default=None, help="only the first N systems")
     zoo_.add_argument(
         "--out", type=_folder, default="zoo_results", help="output folder (./zoo_results)"
+    )
+    zoo_.add_argument(
+        "--families",
+        type=_families,
+        default=None,
+        help="comma-separated families (default: all; see robust_sindy.zoo.ALL_FAMILIES)",
     )
     zoo_.add_argument("--jobs", type=_count, default=2, help="parallel processes (default 2)")
     zoo_.add_argument("--quiet", action="store_true", help="no progress bar")

@@ -14,7 +14,7 @@ from __future__ import annotations
 import itertools
 import warnings
 from collections.abc import Callable
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 
 import numpy as np
 
@@ -219,6 +219,19 @@ class Diagnostics:
         The weak form's test functions (0 otherwise).
     formulation_reason : str
         Which formulation was used, and why.
+    missing_states : ndarray of int (n_states,)
+        Missing readings (NaN) of each state, filled by the temporal screen's local fits
+        (:mod:`robust_sindy.timeseries.missing`).
+    missing_in_gaps : int
+        Of those, the entries in gaps wider than the screen's half window: their
+        samples were suspects of the row screen.
+    missing_controls : int
+        Missing readings of the controls (filled the same way; their samples suspects).
+    missing_derivative_samples : int
+        Samples left out because a measured derivative was missing.
+    temporal_flagged_left_out : int
+        Entries flagged by the temporal screen in the samples the row screen left out
+        (the strong form; all flagged entries with the weak form).
     """
 
     n_samples: int
@@ -253,6 +266,11 @@ class Diagnostics:
     support_half_width: float = float("nan")
     n_rows: int = 0
     formulation_reason: str = ""
+    missing_states: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    missing_in_gaps: int = 0
+    missing_controls: int = 0
+    missing_derivative_samples: int = 0
+    temporal_flagged_left_out: int = 0
 
     @property
     def weak(self) -> np.ndarray:
@@ -310,6 +328,17 @@ class Diagnostics:
             f"{np.isfinite(self.pruned).sum(axis=1).tolist()}",
             f"  aliased terms left out: {', '.join(self.aliased) or 'none'}",
             f"  formulation: {self.formulation_reason or self.formulation}",
+            "  missing readings: "
+            + (
+                f"states {self.missing_states.tolist()} (filled by local fits; "
+                f"{self.missing_in_gaps} in gaps wider than the screen's window), controls "
+                f"{self.missing_controls}, samples without a measured derivative "
+                f"{self.missing_derivative_samples} (left out)"
+                if self.missing_states.sum()
+                + self.missing_controls
+                + self.missing_derivative_samples
+                else "none"
+            ),
             "  derivatives: "
             + (
                 f"none (weak form: {self.n_rows} test functions of half width "
@@ -354,7 +383,20 @@ class Rule:
 
 
 def _outliers(d) -> float:
-    return d.flagged_fraction - d.unresolved_samples / max(d.n_samples, 1)
+    """The share of the data found corrupt, counted where the corruption is: the share
+    of the entries flagged in time in the samples left out (a glitch in one channel
+    costs its sample's row, so with many channels most samples may be left out over a
+    few bad entries each), or the share of the samples left out with no flagged entry
+    (whole rows the library cannot describe), whichever is larger."""
+    n = max(d.n_samples, 1)
+    # Flagged entries whose samples the row screen readmitted were not outliers (a fast
+    # excursion the local fits cannot follow): only those left out count.
+    entries = d.temporal_flagged_left_out / (n * max(d.derivative_half_window.size, 1))
+    out = d.flagged_fraction - d.unresolved_samples / n
+    if d.formulation == "weak":  # the counts are of test functions, not of samples
+        return max(entries, out)
+    dropped_flagged = d.temporal_flagged_samples - d.readmitted_samples
+    return max(entries, out - dropped_flagged / n)
 
 
 def _unresolved(d) -> float:
@@ -426,9 +468,10 @@ RULES: tuple[Rule, ...] = (
         "many outliers",
         lambda d: _outliers(d) > MAX_FLAGGED_FRACTION,
         lambda d, _: (
-            f"{100 * _outliers(d):.0f} % of the samples were flagged as outliers: either "
-            "the data are mostly corrupted or the library cannot describe them; check "
-            "the library and the data (screened_)"
+            f"{100 * _outliers(d):.0f} % of the data were flagged as outliers (of the "
+            "entries, or of the samples without a flagged entry): either the data are "
+            "mostly corrupted or the library cannot describe them; check the library and "
+            "the data (screened_, temporal_.flags)"
         ),
     ),
     Rule(
@@ -639,6 +682,7 @@ def diagnose(
     weak=None,
     covered=None,
     formulation: str = "",
+    missing=None,
 ) -> Diagnostics:
     """The diagnostics of a fit from its stages' outcomes: the kept problem
     (:class:`~robust_sindy.selection.problem.Problem`), the noise floor, the choice of
@@ -682,6 +726,9 @@ def diagnose(
         tstat = robust_t(th, yk, standard, delta_s, kept.segments)
     keep, screening = rows.keep, rows.screening
     screened = ~keep
+    absent = (  # samples without a measured derivative (strong form only)
+        missing.derivative_rows if missing is not None and weak is None else np.zeros_like(keep)
+    )
     m, p = screened.size, th.shape[1]
     coef_t = coef.T
     return Diagnostics(
@@ -690,7 +737,7 @@ def diagnose(
         samples_per_term=float((keep if covered is None else covered).sum() / p),
         temporal_flagged_entries=int(entry_flags.sum()),
         temporal_flagged_samples=int(entry_flags.any(axis=1).sum()),
-        model_flagged_samples=int((screened & ~deriv.unresolved).sum()),
+        model_flagged_samples=int((screened & ~deriv.unresolved & ~absent).sum()),
         readmitted_samples=int((row_flags.any(axis=1) & keep).sum()),
         unresolved_samples=int(deriv.unresolved.sum()),
         screening_converged=True if screening is None else bool(screening.converged),
@@ -727,4 +774,10 @@ def diagnose(
         support_half_width=float("nan") if weak is None else weak.half_width,
         n_rows=0 if weak is None else weak.n_rows,
         formulation_reason=formulation,
+        temporal_flagged_left_out=int(
+            entry_flags.sum()
+            if weak is not None
+            else entry_flags[~keep & ~deriv.unresolved & ~absent].sum()
+        ),
+        **({} if missing is None else missing.summary()),
     )

@@ -5,9 +5,10 @@ function in the module that owns the decision (see :doc:`/guide/index`):
 
 1. :meth:`Trajectories.from_user <robust_sindy.timeseries.trajectories.Trajectories.from_user>`
    -- the records, checked;
-2. the library, fitted to the states' and controls' names;
+2. :class:`~robust_sindy.timeseries.missing.Missing` -- the readings not measured (NaN);
 3. :func:`~robust_sindy.timeseries.temporal.temporal_screen` -- entries inconsistent
-   with their neighbours in time;
+   with their neighbours in time, and the missing ones filled from theirs; then the
+   library, fitted to the states' and controls' names;
 4. :func:`~robust_sindy.timeseries.derivatives.derivatives` -- the targets;
 5. :class:`~robust_sindy.selection.problem.Problem` -- standardised columns;
 6. :func:`~robust_sindy.selection.rows.screen_samples` -- samples with gross residuals;
@@ -61,7 +62,13 @@ from .timeseries.derivatives import (
     derivatives,
     differentiate,
 )
-from .timeseries.temporal import TemporalScreening, noise_flag_bound, temporal_screen
+from .timeseries.missing import Missing
+from .timeseries.temporal import (
+    TemporalScreening,
+    fill_missing,
+    noise_flag_bound,
+    temporal_screen,
+)
 from .timeseries.trajectories import Trajectories, is_frame, is_series
 from .timeseries.weak import WeakRows, support_half_width, weak_rows
 
@@ -284,7 +291,9 @@ class HuberSINDy(BaseEstimator):
         Parameters
         ----------
         x : array_like (m, n), or a list of them
-            Measured states.
+            Measured states; NaN marks a missing reading (filled from its neighbours in
+            time and counted, :mod:`robust_sindy.timeseries.missing`; also in ``x_dot``
+            and ``u``).
         t : float, array_like (m,), or a list of arrays
             Time step or sample times (strictly increasing); needed unless ``x_dot``
             is given.
@@ -318,7 +327,12 @@ class HuberSINDy(BaseEstimator):
         """The stages of an in-memory fit (see the module docstring)."""
         names = data.feature_names()
         library = clone(self.library) if self.library is not None else PolynomialLibrary()
-        z = data.inputs()
+        missing = Missing.of(data)
+        if self.screen:
+            temporal = temporal_screen(data.x, data.t)
+        else:  # missing readings are filled all the same (and said so)
+            temporal = fill_missing(data.x, data.t) if missing.states.any() else None
+        z = missing.filled_inputs(data, temporal)
         theta = library.fit_transform(z, input_names=names)
         m, p = theta.shape
         if m <= p:
@@ -326,14 +340,20 @@ class HuberSINDy(BaseEstimator):
                 f"x has {m} samples but the library has {p} terms: at least {p + 1} samples "
                 "are needed to fit it (use a smaller library or more data)"
             )
-        temporal = temporal_screen(data.x, data.t) if self.screen else None
-        flags = np.zeros((m, data.n_states), dtype=bool) if temporal is None else temporal.flags
-        weak, why = self._weak_rows(data, temporal, library, z) if allow_weak else (None, "")
+        # Entries inconsistent with their neighbours, and missing ones filled across a
+        # gap wider than the screen's window: the samples' suspects.
+        outlying = np.zeros((m, data.n_states), dtype=bool)
+        if temporal is not None:
+            outlying = temporal.flags & ~missing.states
+        flags = outlying | missing.suspect
+        weak, why = (
+            self._weak_rows(data, temporal, library, z, missing) if allow_weak else (None, "")
+        )
         if weak is None:
             deriv = derivatives(
                 data, temporal, self.differentiation, self.derivative_window, self.screen, theta
             )
-            design, segments, row_flags = theta, data.segments, flags
+            design, segments, row_flags = theta, data.segments, flags | missing.controls_suspect
         else:
             # Integrated rows: their targets carry the states' noise, not an estimate's.
             n_rows = weak.n_rows
@@ -341,17 +361,21 @@ class HuberSINDy(BaseEstimator):
                 weak.b, True, np.zeros(n_rows, dtype=bool), None, np.zeros(data.n_states, int)
             )
             design, segments = weak.G, weak.segments
-            row_flags = weak.touched(flags, data)[:, None]
+            row_flags = weak.touched(flags | missing.controls_suspect, data)[:, None]
         scaler = Standardizer.from_data(design, deriv.y)
         noise = noise_columns(library, z, temporal, scaler.theta_scale)
         if weak is not None:
             noise = weak.noise(noise, data)
         problem = Problem(design, deriv.y, scaler, segments, noise)
         pilot = huber_method(self.method)
+        # A missing measured derivative: no target (the weak form uses none).
+        absent = missing.derivative_rows if weak is None else np.zeros(problem.shape[0], bool)
         rows = screen_samples(
-            problem, row_flags, deriv.unresolved, measured=deriv.measured, method=pilot,
-            screen=self.screen,
+            problem, row_flags, deriv.unresolved | absent, measured=deriv.measured,
+            method=pilot, screen=self.screen,
         )  # fmt: skip
+        if absent.any():
+            rows = RowScreen(rows.keep & ~absent, rows.screening)
         kept = problem.keep(rows.keep)
         floor = noise_floor(kept, find_aliases=_is_auto(self.lam), selection_tol=self.selection_tol)
         options = dict(self.solver_options or {})
@@ -378,7 +402,7 @@ class HuberSINDy(BaseEstimator):
         covered = None if weak is None else weak.covered(rows.keep)
         report = diagnose(
             kept=kept, floor=floor, choice=choice, fitted=fitted, final=final, rows=rows,
-            entry_flags=flags, row_flags=row_flags, deriv=deriv,
+            entry_flags=outlying, row_flags=row_flags, deriv=deriv, missing=missing,
             feature_names=library.get_feature_names(), selection_tol=self.selection_tol,
             method=pilot, weak=weak, covered=covered, formulation=why,
         )  # fmt: skip
@@ -387,7 +411,9 @@ class HuberSINDy(BaseEstimator):
             report, weak, covered,
         )  # fmt: skip
 
-    def _weak_rows(self, data: Trajectories, temporal, library, z) -> tuple[WeakRows | None, str]:
+    def _weak_rows(
+        self, data: Trajectories, temporal, library, z, missing: Missing
+    ) -> tuple[WeakRows | None, str]:
         """The weak form of the records, when ``formulation`` asks for it (``"auto"``:
         states only, and no more entries flagged by the temporal screen than Gaussian
         noise gives, :func:`noise_flag_bound`), and why: the repaired
@@ -397,19 +423,23 @@ class HuberSINDy(BaseEstimator):
             return None, "strong form (formulation='strong')"
         if self.formulation == "auto" and data.x_dot is not None:
             return None, "strong form: the derivatives were measured (formulation='auto')"
-        screen = temporal if temporal is not None else temporal_screen(data.x, data.t)
+        # Without the screen, ``temporal`` only filled the missing readings: the choice
+        # and the width are the screen's all the same.
+        screen = temporal if self.screen else temporal_screen(data.x, data.t)
         if self.formulation == "auto":
-            flagged = int(screen.flags.sum())
-            bound = noise_flag_bound(screen.flags.size, OUTLIER_EVIDENCE)
+            # Missing readings are not outliers: the count is of the readings.
+            readings = int((~missing.states).sum())
+            flagged = int((screen.flags & ~missing.states).sum())
+            bound = noise_flag_bound(readings, OUTLIER_EVIDENCE)
             if flagged > bound:
                 return None, (
                     f"strong form: the temporal screen flagged {flagged} entries "
-                    f"({100 * flagged / screen.flags.size:.2g} %), more than Gaussian noise "
+                    f"({100 * flagged / readings:.2g} %), more than Gaussian noise "
                     f"gives ({bound}): outliers cost single samples in the strong form, where "
                     "the weak form's integrals would rest on their repairs (formulation='auto')"
                 )
         support = support_half_width(data, screen)
-        states = screen.repaired if temporal is not None else np.vstack(data.x)
+        states = temporal.repaired if self.screen else z[:, : data.n_states]
         inputs = z.copy()
         inputs[:, : data.n_states] = states  # the library of the repaired states
         terms = library.n_output_features_
@@ -486,11 +516,23 @@ class HuberSINDy(BaseEstimator):
                 "differentiates chunk by chunk; pass formulation='strong' or 'auto' for Dask "
                 "arrays"
             )
+        refused = (
+            "missing readings (NaN) are handled in memory only: the out-of-core refit "
+            "differentiates chunk by chunk; fit the array in memory (x.compute()) or "
+            "leave out the samples with missing readings"
+        )
         chosen = outofcore.sample(data)
+        if Missing.of(chosen).any:
+            raise ValueError(f"x, x_dot or u: {refused}")
         # The refit of every chunk is the strong form's: so is the sample's.
         self._set_fitted(self._identify(chosen, allow_weak=False))
         warn(self.diagnostics_, stacklevel=4)
-        done = outofcore.refit(self, data, chosen)
+        try:
+            done = outofcore.refit(self, data, chosen)
+        except ValueError as exc:
+            if "NaN" in str(exc):
+                raise ValueError(f"x, x_dot or u: {refused}") from exc
+            raise
         self.coef_sample_ = self.coef_
         self.coef_ = np.ascontiguousarray(done.coef.T)
         self.support_ = self.coef_ != 0
@@ -657,6 +699,12 @@ class HuberSINDy(BaseEstimator):
         data = Trajectories.from_user(x, t, x_dot, u)
         if data.n_samples < 2:
             raise ValueError(f"x has {data.n_samples} samples: a score needs at least 2")
+        # Missing readings are filled for the library and the derivatives (as fit fills
+        # them) but the score is of the samples with every reading.
+        pairs = [
+            tuple(None if v is None else fill_missing(v, ti).repaired for v in pair)
+            for pair, ti in zip(data.pairs(), data.t or [None] * len(data.x), strict=True)
+        ]  # fmt: skip
         ds = data.x_dot
         if ds is None:
             # The derivatives fit would have computed: windows guarded by the library.
@@ -665,10 +713,13 @@ class HuberSINDy(BaseEstimator):
                     a, ti, self.differentiation, self.derivative_window,
                     library=self.library_.transform(self._inputs(a, b)),
                 )
-                for (a, b), ti in zip(data.pairs(), data.t, strict=True)
+                for (a, b), ti in zip(pairs, data.t, strict=True)
             ]  # fmt: skip
-        pred = np.vstack([self.predict(a, b) for a, b in data.pairs()])
+        pred = np.vstack([self.predict(a, b) for a, b in pairs])
         y = np.vstack(ds)
+        measured = ~(data.missing.any(axis=1) | data.missing_controls.any(axis=1))
+        measured &= np.all(np.isfinite(y), axis=1)
+        y, pred = y[measured], pred[measured]
         ss_res = ((y - pred) ** 2).sum(axis=0)
         ss_tot = ((y - y.mean(axis=0)) ** 2).sum(axis=0)
         return float(np.mean(1.0 - ss_res / np.where(ss_tot > 0, ss_tot, 1.0)))

@@ -186,7 +186,7 @@ class FitJob:
                 )
             return names
 
-        def numeric(name, what):
+        def numeric(name, what, missing_ok=True):
             values = frame[name]
             try:
                 arr = np.asarray(values, dtype=float)
@@ -194,13 +194,16 @@ class FitJob:
                 raise InputError(
                     f"{what}: column {name!r} is not numeric (first values {list(values.iloc[:3])})"
                 ) from None
-            bad = np.flatnonzero(~np.isfinite(arr))
+            # An empty cell (NaN) is a missing reading, which the fit handles and reports
+            # (robust_sindy.timeseries.missing); inf is not a reading, nor is a missing time.
+            bad = np.flatnonzero(np.isinf(arr) if missing_ok else ~np.isfinite(arr))
             if bad.size:
                 rows = ", ".join(str(i + 2) for i in bad[:5])  # file lines: header is 1
+                kind = "infinite" if missing_ok else "missing or non-finite"
                 raise InputError(
-                    f"{what}: column {name!r} has {bad.size} missing or non-finite values "
-                    f"(file lines {rows}{', ...' if bad.size > 5 else ''}); fill or drop them "
-                    "first: nothing is interpolated silently"
+                    f"{what}: column {name!r} has {bad.size} {kind} values "
+                    f"(file lines {rows}{', ...' if bad.size > 5 else ''})"
+                    + ("" if missing_ok else "; every sample needs its time")
                 )
             return arr
 
@@ -251,7 +254,7 @@ class FitJob:
                 raise InputError(f"--dt: expected a finite number > 0; got {dt!r}")
             t, label = dt * np.arange(len(frame)), f"sample x {dt:g}"
         else:
-            t, label = numeric(time, "--time"), time
+            t, label = numeric(time, "--time", missing_ok=False), time
             if np.any(np.diff(t) <= 0):
                 i = int(np.flatnonzero(np.diff(t) <= 0)[0])
                 raise InputError(
@@ -384,8 +387,15 @@ def _summary(model, job, source: str, messages) -> list[str]:
 
 def _simulate(model, job):
     """The model integrated from the first sample over the data's times (may stop early)."""
+    start = job.x[0]
+    if np.isnan(start).any():  # a missing first reading: the fit's fill of it
+        start = model.temporal_.repaired[0]
+    u = job.u
+    if u is not None and np.isnan(u).any():
+        keep = ~np.isnan(u).any(axis=1)  # the controls' readings, interpolated between
+        u = np.column_stack([np.interp(job.t, job.t[keep], c[keep]) for c in u.T])
     try:
-        sim = model.simulate(job.x[0], job.t, u=job.u)
+        sim = model.simulate(start, job.t, u=u)
     except Exception as exc:  # an unstable model is a finding, not a crash
         warnings.warn(f"the simulation failed: {exc}", UserWarning, stacklevel=2)
         return np.full((0, job.x.shape[1]), np.nan)
@@ -406,7 +416,13 @@ def _figures(model, job, sim, out: Path) -> list[Path]:
         ax.plot(job.t, job.x[:, i], "o-", ms=3, lw=0.8, color="0.35", label="data")
         if len(sim):
             ax.plot(job.t[: len(sim)], sim[:, i], "-", color="C0", lw=1.6, label="model")
-        mark = flagged | temporal[:, i]
+        lost = np.isnan(job.x[:, i])
+        if lost.any():
+            ax.plot(
+                job.t[lost], model.temporal_.repaired[lost, i], "o", mfc="none", color="C2",
+                ms=5, label="missing, filled",
+            )  # fmt: skip
+        mark = (flagged | temporal[:, i]) & ~lost
         if mark.any():
             ax.plot(
                 job.t[mark], job.x[mark, i], "x", color="C3", ms=7, mew=2,
@@ -428,6 +444,7 @@ def _figures(model, job, sim, out: Path) -> list[Path]:
     # Colour: each term's share of its equation (coefficient times the term's RMS on the
     # data, over the largest in the row), so the picture does not depend on units.
     z = job.x if job.u is None else np.hstack([job.x, job.u])
+    z = z[~np.isnan(z).any(axis=1)]  # the samples with every reading
     rms = np.sqrt(np.mean(model.library_.transform(z)[:, used] ** 2, axis=0))
     contrib = coef[:, used] * rms
     top = np.abs(contrib).max(axis=1, keepdims=True)

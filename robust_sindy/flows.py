@@ -26,7 +26,7 @@ from itertools import combinations_with_replacement
 import numpy as np
 import scipy.integrate
 
-__all__ = ["ZooSystem", "polynomial_systems", "simulate_system", "write_rows"]
+__all__ = ["ZooSystem", "lorenz96", "polynomial_systems", "simulate_system", "write_rows"]
 
 
 _COEF_CUT = 1e-9
@@ -111,15 +111,36 @@ def polynomial_systems(max_states: int = 4, max_degree: int = 3) -> list[ZooSyst
     return out
 
 
-def simulate_system(system: ZooSystem, n_samples: int, seed: int, pts_per_period: int = 100):
-    """True states and derivatives: ``n_samples`` samples after a seed-dependent burn-in."""
+def lorenz96(n_states: int, forcing: float = 8.0) -> ZooSystem:
+    """Lorenz-96 with ``n_states`` states, ``x_i' = (x_i+1 - x_i-2) x_i-1 - x_i + F``
+    (indices cyclic), on the quadratic monomials: the zoo's system with many channels."""
+    n = int(n_states)
+    powers = _powers(n, 2)
+    where = {c: j for j, c in enumerate(powers)}
+    coef = np.zeros((len(powers), n))
+    for i in range(n):
+        coef[where[tuple(sorted(((i + 1) % n, (i - 1) % n)))], i] += 1.0
+        coef[where[tuple(sorted(((i - 2) % n, (i - 1) % n)))], i] -= 1.0
+        coef[where[(i,)], i] = -1.0
+        coef[where[()], i] = forcing
+    ic = forcing + np.sin(np.arange(n))
+    # About 100 samples over the decorrelation time of its chaos (F = 8).
+    return ZooSystem(f"Lorenz96_{n}", n, 2, powers, coef, ic, 0.01)
+
+
+def simulate_system(
+    system: ZooSystem, n_samples: int, seed: int, pts_per_period: int = 100, times=None
+):
+    """True states and derivatives: ``n_samples`` samples after a seed-dependent burn-in,
+    uniformly spaced, or at ``times`` (from 0, increasing) when given."""
     dt = system.dt * 100.0 / pts_per_period
     burn = dt * n_samples * (0.5 + (seed % 7) / 7.0)
 
     def rhs(_t, v):
         return system.rhs(v)[0]
 
-    t_eval = burn + dt * np.arange(n_samples)
+    t_eval = burn + (dt * np.arange(n_samples) if times is None else np.asarray(times, float))
+    n_samples = t_eval.size
     sol = scipy.integrate.solve_ivp(
         rhs, (0.0, t_eval[-1]), system.ic, method="DOP853", t_eval=t_eval, rtol=1e-10, atol=1e-10
     )

@@ -21,18 +21,23 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from .flows import ZooSystem, polynomial_systems, simulate_system, write_rows
+from .flows import ZooSystem, lorenz96, polynomial_systems, simulate_system, write_rows
 
 __all__ = [
+    "ALL_FAMILIES",
+    "CHANNELS",
     "DERIVATIVES",
     "FAMILIES",
     "METHODS",
+    "SENSOR_FAMILIES",
+    "TIME_FAMILIES",
     "ZOO_CONTAMINATION",
     "Contamination",
     "ZooSystem",
     "contaminate_family",
     "polynomial_systems",
     "run_case",
+    "sample_times",
     "simulate_system",
 ]
 
@@ -45,6 +50,26 @@ __all__ = [
 #: * ``bursts``: three contiguous bursts of 2 % of the samples each, Gaussian ``0.3 s``;
 #: * ``dropouts``: 5 % of the samples (whole rows) read as 0.
 FAMILIES = ("clean", "rows", "spikes", "heavy", "bursts", "dropouts")
+#: Records as sensors deliver them (base noise on every entry, as above):
+#:
+#: * ``missing``: 5 % of the entries (one state at a time) not measured (NaN);
+#: * ``glitches``: 4 % of the entries (one state at a time) off by ``+-(3 to 20) s``
+#:   (log-uniform);
+#: * ``irregular``: the same number of samples at uniformly random times over the span;
+#: * ``jitter``: each sample time off its grid by up to 40 % of the step;
+#: * ``gaps``: three stretches of 5 % of the samples each not recorded.
+#:
+#: PySINDy's estimators are given the same records (the sample times as an array; the
+#: samples with a missing entry left out, as it cannot take NaN).
+SENSOR_FAMILIES = ("missing", "glitches", "irregular", "jitter", "gaps")
+#: Every family of the zoo, in the order of its table.
+ALL_FAMILIES = FAMILIES + SENSOR_FAMILIES
+#: States of the Lorenz-96 systems on which the sensor families are also run (many
+#: channels: a glitch or a missing reading in one of them costs its entry, not the
+#: sample).
+CHANNELS = (6, 10)
+#: The families that change the sample times rather than the values.
+TIME_FAMILIES = ("irregular", "jitter", "gaps")
 #: ``exact``: the true derivatives at the true states; ``states``: none given.
 DERIVATIVES = ("exact", "states")
 #: Methods compared (``huber`` is ``HuberSINDy()`` with its defaults).
@@ -70,6 +95,12 @@ class Contamination:
     bursts_fraction: float = 0.02
     bursts_scale: float = 0.3
     dropouts_fraction: float = 0.05
+    missing_fraction: float = 0.05
+    glitch_fraction: float = 0.04
+    glitch_range: tuple[float, float] = (3.0, 20.0)
+    jitter: float = 0.4
+    gaps: int = 3
+    gap_fraction: float = 0.05
 
 
 #: The zoo's contamination.
@@ -81,8 +112,8 @@ def contaminate_family(
 ):
     """Measured states for ``family`` and the mask of contaminated entries (m, n);
     ``params`` sets the fractions and amplitudes (the zoo's by default)."""
-    if family not in FAMILIES:
-        raise ValueError(f"family must be one of {FAMILIES}; got {family!r}")
+    if family not in ALL_FAMILIES:
+        raise ValueError(f"family must be one of {ALL_FAMILIES}; got {family!r}")
     m, n = x.shape
     s = x.std(axis=0)
     s = np.where(s > 0, s, 1.0)
@@ -110,7 +141,42 @@ def contaminate_family(
         rows = rng.choice(m, round(params.dropouts_fraction * m), replace=False)
         noisy[rows] = 0.0
         bad[rows] = True
+    elif family in ("missing", "glitches"):
+        fraction = params.missing_fraction if family == "missing" else params.glitch_fraction
+        k = round(fraction * m * n)
+        i, j = np.unravel_index(rng.choice(m * n, k, replace=False), (m, n))
+        if family == "missing":
+            noisy[i, j] = np.nan
+        else:
+            lo, hi = np.log(params.glitch_range[0]), np.log(params.glitch_range[1])
+            noisy[i, j] += rng.choice([-1.0, 1.0], k) * np.exp(rng.uniform(lo, hi, k)) * s[j]
+        bad[i, j] = True
     return noisy, bad
+
+
+def sample_times(
+    family: str, n_samples: int, dt: float, rng: np.random.Generator,
+    params: Contamination = ZOO_CONTAMINATION,
+) -> np.ndarray | None:  # fmt: skip
+    """The sample times (from 0) of a family of :data:`TIME_FAMILIES` with ``n_samples``
+    samples at the nominal step ``dt``; None for the others (the uniform grid)."""
+    if family not in TIME_FAMILIES:
+        return None
+    if family == "irregular":
+        t = np.sort(rng.uniform(0.0, dt * (n_samples - 1), n_samples))
+    elif family == "jitter":
+        t = dt * (np.arange(n_samples) + rng.uniform(-params.jitter, params.jitter, n_samples))
+    else:
+        length = round(params.gap_fraction * n_samples)
+        total = n_samples + params.gaps * length
+        kept = np.ones(total, dtype=bool)
+        # Gaps that neither touch nor overlap: one start in each of `gaps` equal parts.
+        part = total // params.gaps
+        for g in range(params.gaps):
+            start = g * part + 1 + int(rng.integers(0, part - length - 1))
+            kept[start : start + length] = False
+        t = dt * np.flatnonzero(kept)[:n_samples]
+    return t - t[0]
 
 
 def _fit_method(method, system, t, x, x_dot, seed=0):
@@ -128,6 +194,10 @@ def _fit_method(method, system, t, x, x_dot, seed=0):
         return model.coef_.T, [str(w.message) for w in caught]
     import pysindy as ps
 
+    lost = np.isnan(x).any(axis=1)
+    if lost.any():  # PySINDy takes no NaN: the samples with a missing entry left out
+        x, t = x[~lost], t[~lost]
+        x_dot = None if x_dot is None else x_dot[~lost]
     optimizers = {
         "stlsq": lambda: ps.STLSQ(),
         "sr3_trim": lambda: ps.SR3(
@@ -163,8 +233,9 @@ def run_case(
 ) -> list[dict]:
     """Identify ``system`` under one contamination case with every method; one row each
     (``contamination``, ``pts_per_period``: other parameters for held-out checks)."""
-    rng = np.random.default_rng([seed, FAMILIES.index(family), DERIVATIVES.index(derivatives)])
-    t, x, dx = simulate_system(system, n_samples, seed, pts_per_period)
+    rng = np.random.default_rng([seed, ALL_FAMILIES.index(family), DERIVATIVES.index(derivatives)])
+    times = sample_times(family, n_samples, system.dt * 100.0 / pts_per_period, rng, contamination)
+    t, x, dx = simulate_system(system, n_samples, seed, pts_per_period, times=times)
     noisy, bad = contaminate_family(x, family, rng, contamination)
     x_dot = dx if derivatives == "exact" else None
     peer_seed = int(rng.integers(2**31))
@@ -182,6 +253,7 @@ def run_case(
         rows.append(
             dict(
                 system=system.name,
+                states=system.n_states,
                 family=family,
                 derivatives=derivatives,
                 seed=seed,
@@ -203,7 +275,7 @@ def run_case(
 def run(
     n_systems: int | None = None,
     seeds: int = 1,
-    families=FAMILIES,
+    families=ALL_FAMILIES,
     derivatives=DERIVATIVES,
     methods=METHODS,
     n_samples: int = 2000,
@@ -219,6 +291,11 @@ def run(
         (s, f, d, seed) for s in systems for f in families for d in derivatives
         for seed in range(seeds)
     ]  # fmt: skip
+    if n_systems is None:  # many channels: the sensor families on Lorenz-96
+        cases += [
+            (lorenz96(n), f, d, seed) for n in CHANNELS for f in families
+            if f in SENSOR_FAMILIES for d in derivatives for seed in range(seeds)
+        ]  # fmt: skip
 
     def one(system, family, deriv, seed):
         try:
@@ -237,7 +314,7 @@ def run(
 def summary(rows: list[dict]) -> list[dict]:
     """Exact-support rate, median IAE and warning rates per (family, derivatives, method)."""
     keys = sorted({(r["family"], r["derivatives"], r["method"]) for r in rows},
-                  key=lambda k: (FAMILIES.index(k[0]), DERIVATIVES.index(k[1]),
+                  key=lambda k: (ALL_FAMILIES.index(k[0]), DERIVATIVES.index(k[1]),
                                  METHODS.index(k[2])))  # fmt: skip
     out = []
     for fam, der, met in keys:
@@ -270,7 +347,7 @@ def table(summ: list[dict]) -> str:
     )
     lines = [head, "|" + "---|" * (len(methods) + 4)]
     cells = {(s["family"], s["derivatives"], s["method"]): s for s in summ}
-    for fam in FAMILIES:
+    for fam in ALL_FAMILIES:
         for der in DERIVATIVES:
             if (fam, der, methods[0]) not in cells:
                 continue
@@ -297,6 +374,8 @@ def write(rows: list[dict], out, command: str) -> list:
 
     out = Path(out)
     write_rows(rows, out / "zoo.csv")
+    many = [r for r in rows if int(r.get("states", 0)) > 4]
+    rows = [r for r in rows if int(r.get("states", 0)) <= 4]
     summ = summary(rows)
     n_sys = len({r["system"] for r in rows})
     n_seeds = len({r["seed"] for r in rows})
@@ -314,8 +393,19 @@ def write(rows: list[dict], out, command: str) -> list:
         "![zoo](zoo.png)",
         "",
     ]
+    if many:
+        names = sorted({r["system"] for r in many}, key=lambda v: (len(v), v))
+        text += [
+            "## Many channels",
+            "",
+            f"The sensor families on {', '.join(names)} (`robust_sindy.flows.lorenz96`), "
+            "the same cells:",
+            "",
+            table(summary(many)),
+            "",
+        ]
     (out / "zoo.md").write_text("\n".join(text))
-    fig, axes = plt.subplots(1, len(DERIVATIVES), figsize=(11, 3.8), sharey=True)
+    fig, axes = plt.subplots(1, len(DERIVATIVES), figsize=(13, 4.2), sharey=True)
     methods = [m for m in METHODS if any(s["method"] == m for s in summ)]
     width = 0.8 / len(methods)
     for ax, der in zip(np.atleast_1d(axes), DERIVATIVES, strict=False):
@@ -323,10 +413,12 @@ def write(rows: list[dict], out, command: str) -> list:
             vals = [
                 next((s["exact"] for s in summ
                       if (s["family"], s["derivatives"], s["method"]) == (f, der, met)), np.nan)
-                for f in FAMILIES
+                for f in ALL_FAMILIES
             ]  # fmt: skip
-            ax.bar(np.arange(len(FAMILIES)) + i * width, vals, width, label=met)
-        ax.set_xticks(np.arange(len(FAMILIES)) + 0.4 - width / 2, FAMILIES, rotation=30)
+            ax.bar(np.arange(len(ALL_FAMILIES)) + i * width, vals, width, label=met)
+        ax.set_xticks(
+            np.arange(len(ALL_FAMILIES)) + 0.4 - width / 2, ALL_FAMILIES, rotation=40, ha="right"
+        )
         ax.set_title(f"derivatives: {der}")
         ax.set_ylim(0, 1)
     np.atleast_1d(axes)[0].set_ylabel("exact support rate")

@@ -1,4 +1,5 @@
-"""The code of the README and the getting-started page runs and prints what they show.
+"""The code of the README, the getting-started page and the missing-readings guide runs
+and prints what they show.
 
 Every ```python block followed by an "Output:" block is run (in a fresh namespace, in a
 temporary folder) and its printed lines are compared with the documented ones: words
@@ -14,7 +15,11 @@ import warnings
 import pytest
 
 ROOT = pathlib.Path(__file__).parent.parent
-PAGES = [ROOT / "README.md", ROOT / "docs" / "getting_started.md"]
+PAGES = [
+    ROOT / "README.md",
+    ROOT / "docs" / "getting_started.md",
+    ROOT / "docs" / "guide" / "missing.md",
+]
 NUMBER = re.compile(r"[-+]?(?:\d+\.\d*|\.\d+|\d+)(?:e[-+]?\d+)?")
 
 

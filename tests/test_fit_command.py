@@ -105,14 +105,16 @@ def test_bad_files_give_one_clear_line(tmp_path, capsys):
     cases = {
         "missing.csv": None,
         "text.csv": "a,b\n1,2\nx,\n",
-        "gaps.csv": "t,a,b\n0,1,2\n1,,3\n2,1,2\n3,1,2\n",
+        "gaps.csv": "t,a,b\n0,1,2\n1,inf,3\n2,1,2\n3,1,2\n",
+        "notimes.csv": "t,a,b\n0,1,2\n,1,3\n2,1,2\n3,1,2\n",
         "backwards.csv": "t,a\n0,1\n2,1\n1,1\n",
         "notime.csv": "a,b\n1,2\n3,4\n",
     }
     expect = {
         "missing.csv": "no such file",
         "text.csv": "no time",
-        "gaps.csv": "column 'a' has 1 missing or non-finite values (file lines 3)",
+        "gaps.csv": "column 'a' has 1 infinite values (file lines 3)",
+        "notimes.csv": "column 't' has 1 missing or non-finite values (file lines 3); every",
         "backwards.csv": "must increase strictly; it does not at file line 4",
         "notime.csv": "give --time COLUMN or --dt STEP",
     }

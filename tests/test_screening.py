@@ -356,7 +356,20 @@ def test_samples_left_out_are_reported_by_cause():
 
     assert problems(0.2, 0.1) == [] and problems(0.45, 0.2) == []
     (message,) = problems(0.4, 0.05)
-    assert message.startswith("35 % of the samples were flagged as outliers")
+    assert message.startswith("35 % of the data were flagged as outliers")
+    # Samples left out over flagged entries count by their entries: 45 % of the samples
+    # with a glitch in one of ten channels is 4.5 % of the entries, no doubt; 35 % of the
+    # entries is.
+    by_entries = dataclasses.replace(
+        d, derivative_half_window=np.zeros(10, dtype=int), flagged_fraction=0.45,
+        temporal_flagged_samples=round(0.45 * m), readmitted_samples=0,
+        temporal_flagged_left_out=round(0.045 * 10 * m),
+    )  # fmt: skip
+    assert by_entries.problems() == []
+    (message,) = dataclasses.replace(
+        by_entries, temporal_flagged_left_out=round(0.35 * 10 * m)
+    ).problems()
+    assert message.startswith("35 % of the data were flagged as outliers (of the entries")
     (message,) = problems(0.45, 0.4)
     assert message.startswith("at 40 % of the samples the estimated derivatives")
     (message,) = problems(0.55, 0.27)

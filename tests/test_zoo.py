@@ -23,7 +23,7 @@ def test_the_polynomial_flows_are_found_with_their_coefficients(systems):
     assert np.count_nonzero(lorenz.coef) == 7
 
 
-@pytest.mark.parametrize("family", zoo.FAMILIES)
+@pytest.mark.parametrize("family", zoo.ALL_FAMILIES)
 def test_contamination_families_mark_what_they_change(family):
     rng = np.random.default_rng(0)
     x = np.cumsum(rng.normal(size=(500, 3)), axis=0)
@@ -31,7 +31,24 @@ def test_contamination_families_mark_what_they_change(family):
     assert noisy.shape == x.shape
     big = np.abs(noisy - x) > 0.05 * x.std(axis=0)
     assert not (big & ~bad).any() or family == "heavy"
-    assert bad.any() == (family not in ("clean", "heavy"))
+    assert bad.any() == (family not in ("clean", "heavy", *zoo.TIME_FAMILIES))
+    assert np.array_equal(np.isnan(noisy), bad if family == "missing" else np.zeros_like(bad))
+
+
+@pytest.mark.parametrize("family", zoo.TIME_FAMILIES)
+def test_time_families_give_increasing_times_over_the_span(family):
+    for seed in range(3):
+        t = zoo.sample_times(family, 2000, 0.01, np.random.default_rng(seed))
+        steps = np.diff(t)
+        assert t.size == 2000 and t[0] == 0 and (steps > 0).all()
+        if family == "gaps":  # three gaps of 100 steps, the rest on the grid
+            assert np.sum(steps > 1.5 * 0.01) == 3
+            assert np.allclose(steps[steps > 0.015], 0.01 * 101)
+        elif family == "jitter":
+            assert np.abs(t - 0.01 * np.arange(2000) - (t[0] - 0)).max() < 0.01
+        else:
+            assert abs(t[-1] - 0.01 * 1999) < 0.1
+    assert zoo.sample_times("clean", 2000, 0.01, np.random.default_rng(0)) is None
 
 
 def test_huber_sindy_identifies_a_zoo_case_exactly(systems):
@@ -71,3 +88,9 @@ def test_a_case_can_take_other_contamination(systems):
     assert row["contaminated"] == 0.1
     (row,) = zoo.run_case(systems["Lorenz"], "rows", "exact", 0, methods=("huber",), n_samples=600)
     assert row["contaminated"] == zoo.ZOO_CONTAMINATION.rows_fraction == 0.2
+
+
+def test_zoo_families_option_is_checked(capsys):
+    with pytest.raises(SystemExit):
+        main(["zoo", "--families", "clean,foo"])
+    assert "unknown families ['foo']" in capsys.readouterr().err

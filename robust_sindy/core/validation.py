@@ -14,8 +14,11 @@ import numpy as np
 LOSSES = ("huber", "squared")
 
 
-def as_float_array(value, name: str, ndims: tuple[int, ...]) -> np.ndarray:
-    """Return ``value`` as a finite float64 array with one of ``ndims`` dimensions."""
+def as_float_array(
+    value, name: str, ndims: tuple[int, ...], *, allow_nan: bool = False
+) -> np.ndarray:
+    """Return ``value`` as a finite float64 array with one of ``ndims`` dimensions
+    (``allow_nan``: NaN entries, missing readings, are allowed; inf never is)."""
     try:
         arr = np.asarray(value)
     except Exception as exc:  # ragged lists and the like
@@ -26,7 +29,12 @@ def as_float_array(value, name: str, ndims: tuple[int, ...]) -> np.ndarray:
         expected = " or ".join(f"{d}-D" for d in ndims)
         raise ValueError(f"{name} must be {expected}; got shape {arr.shape}")
     arr = np.asarray(arr, dtype=np.float64)
-    if not np.all(np.isfinite(arr)):
+    if allow_nan:
+        if np.isinf(arr).any():
+            raise ValueError(
+                f"{name} contains inf (NaN marks a missing reading; inf is not a reading)"
+            )
+    elif not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or inf")
     return arr
 

@@ -167,12 +167,12 @@ class _Pilots:
         # required (the final fit of the kept samples is certified on its own).
         self.budget = pilot_budget(method)
 
-    def bound_of(self, r, scale, coef):
+    def bound_of(self, r, scale, coef, with_local: bool = True):
         """Each residual's bound: the scale, the local scale of the trusted samples'
-        residuals, and the state noise carried through the model (no more of it than
-        the residuals themselves show)."""
+        residuals (with ``with_local``), and the state noise carried through the model (no
+        more of it than the residuals themselves show)."""
         bound = np.broadcast_to(scale, r.shape)
-        if self.segments is not None:
+        if with_local and self.segments is not None:
             local = _segment_local_scale(r, self.segments, self.half, self.first)
             bound = np.maximum(bound, local)
         if self.noise:
@@ -281,6 +281,9 @@ def screen_rows(
        that misses a fast excursion gives a pilot that extrapolates there, a pilot
        bent by gross errors has a larger scale and explains fewer samples, and the
        forward search reaches the excursion one step at a time, before the outliers.
+       That comparison leaves out the local scale of each outcome's own residuals, so
+       that a pilot bent by gross errors cannot excuse its residuals by the local scale
+       they raise.
 
     With ``noise`` (the noise of the states carried through the library, one array per
     state), the bound of a sample is also at least the residual that this noise gives
@@ -363,10 +366,14 @@ def screen_rows(
         everything = pilots.iterate(np.ones(m, dtype=bool))
         cands = [everything, pilots.iterate(pilots.forward(~flags, scale))]
         common = np.minimum.reduce([scale] + [c[1] for c in cands])
-        explained = [
-            int((pilots.scaled(rr, common, cc) <= 1).sum())
+        # Judged without the local scale of each one's own residuals: a pilot bent by
+        # gross errors has large residuals on good samples too, which would raise its
+        # local bound everywhere and excuse them.
+        bounds = [
+            (rr, pilots.bound_of(rr, common, cc, with_local=False))
             for rr, cc in [(r, coef)] + [(c[4], c[5]) for c in cands]
         ]
+        explained = [int((gross_ratio(rr, b, cutoff) <= 1).sum()) for rr, b in bounds]
         best = int(np.argmax(explained))
         if best > 0 and explained[best] - explained[0] > _COMPETE_MARGIN * m:
             flags, scale, done_rounds, converged = cands[best - 1][:4]

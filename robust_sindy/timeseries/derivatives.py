@@ -198,7 +198,9 @@ def derivatives(
     (:func:`trajectory_derivative`; ``check``: look for those samples)."""
     m, n = data.n_samples, data.n_states
     if data.x_dot is not None:
-        y = np.vstack(data.x_dot)
+        # A missing measured derivative (NaN) has no target: its sample is left out of
+        # the fit (robust_sindy.timeseries.missing); 0 only keeps the arrays finite.
+        y = np.nan_to_num(np.vstack(data.x_dot), nan=0.0)
         return Derivatives(y, True, np.zeros(m, dtype=bool), None, np.zeros(n, dtype=int))
     out, highs, windows = [], [], [np.zeros(n, dtype=int)]
     unresolved = np.zeros(m, dtype=bool)

@@ -30,7 +30,13 @@ from ..core.threads import map_threads
 from ..core.validation import as_float_array, check_int, check_positive
 from . import _temporal_kernels
 
-__all__ = ["CUTOFF", "TemporalScreening", "noise_flag_bound", "temporal_screen"]
+__all__ = [
+    "CUTOFF",
+    "TemporalScreening",
+    "fill_missing",
+    "noise_flag_bound",
+    "temporal_screen",
+]
 
 #: Robust standard deviations beyond which an entry is flagged (``temporal_screen``).
 CUTOFF = 3.5
@@ -438,7 +444,10 @@ def temporal_screen(
     Parameters
     ----------
     x : array_like (m, n), or a list of them
-        Sampled states, one array per trajectory.
+        Sampled states, one array per trajectory.  NaN marks a missing reading: a
+        component with missing entries is screened on its readings at their times, and
+        its missing entries are flagged and filled by the local fit of their nearest
+        usable readings.
     t : array_like (m,), or a list of them, optional
         Sample times (strictly increasing); uniform sampling when omitted.  Only
         relative times within a window matter, so the time unit does not.
@@ -474,7 +483,7 @@ def temporal_screen(
     cutoff = check_positive(cutoff, "cutoff")
     scale_half = check_int(scale_window, "scale_window", 1)
     multiple = isinstance(x, (list, tuple))
-    xs = [as_float_array(a, "x", (1, 2)) for a in (x if multiple else [x])]
+    xs = [as_float_array(a, "x", (1, 2), allow_nan=True) for a in (x if multiple else [x])]
     xs = [a[:, None] if a.ndim == 1 else a for a in xs]
     if t is None:
         ts = [np.arange(a.shape[0], dtype=float) for a in xs]
@@ -485,18 +494,104 @@ def temporal_screen(
     flags, repaired, scales = [], [], []
     skipped = 0
     for a, ti in zip(xs, ts, strict=True):
+        lost = np.isnan(a)
         if a.shape[0] < 2 * h + 2:
             skipped += 1
-            flags.append(np.zeros(a.shape, dtype=bool))
-            repaired.append(a.copy())
+            flags.append(lost)
+            repaired.append(_fill(a, ti, lost, h, degree)[0])
             continue
-        f, r, s = _screen_one(a, ti, h, degree, cutoff, scale_half)
+        if lost.any():
+            f, r, s = _screen_with_missing(a, ti, lost, h, degree, cutoff, scale_half)
+        else:
+            f, r, s = _screen_one(a, ti, h, degree, cutoff, scale_half)
         flags.append(f)
         repaired.append(r)
         scales.append(s)
     n = xs[0].shape[1]
     scale = np.max(scales, axis=0) if scales else np.full(n, np.nan)
     return TemporalScreening(np.vstack(flags), np.vstack(repaired), scale, skipped)
+
+
+def _screen_with_missing(x, t, lost, h, degree, cutoff, scale_half):
+    """:func:`_screen_one` of a trajectory with missing entries (``lost``, NaN in ``x``):
+    each component with missing entries is screened on its own readings at their
+    times (a missing reading is a sample that component does not have), then its
+    missing entries are flagged and filled by the local fit of their nearest usable
+    readings (:func:`_fill`).  Components without missing entries are screened together
+    as usual."""
+    n = x.shape[1]
+    flags, repaired, scale = lost.copy(), x.copy(), np.empty(n)
+    full = np.flatnonzero(~lost.any(axis=0))
+    if full.size:
+        f, r, sc = _screen_one(x[:, full], t, h, degree, cutoff, scale_half)
+        flags[:, full], repaired[:, full], scale[full] = f, r, sc
+
+    def component(k):
+        have = ~lost[:, k]
+        if have.sum() < 2 * h + 2:
+            return None
+        return _screen_one(x[have, k : k + 1], t[have], h, degree, cutoff, scale_half)
+
+    partial = np.flatnonzero(lost.any(axis=0))
+    for k, done in zip(partial, map_threads(component, partial), strict=True):
+        have = ~lost[:, k]
+        if done is None:
+            scale[k] = np.nan
+        else:
+            flags[have, k], repaired[have, k], scale[k] = done[0][:, 0], done[1][:, 0], done[2][0]
+    filled, _ = _fill(repaired, t, flags, h, degree, only=lost)
+    return flags, filled, scale
+
+
+def _fill(x, t, unusable, h, degree, only=None):
+    """``x`` with the entries ``only`` (default: ``unusable``) replaced by the
+    leave-one-out local polynomial (:func:`loo_predict`) of their ``2 h`` nearest
+    usable entries in time, and per component the robust scale of the studentised
+    errors of the usable entries (the noise level; NaN with too few)."""
+    only = unusable if only is None else only
+    out = x.copy()
+    scale = np.full(x.shape[1], np.nan)
+    for k in range(x.shape[1]):
+        usable = ~unusable[:, k]
+        if usable.sum() < 2:
+            continue
+        values = np.where(usable, x[:, k], 0.0)  # never read: not a neighbour
+        deg = min(degree, int(usable.sum()) - 1, 2 * h - 1)
+        at = np.flatnonzero(only[:, k])
+        if at.size:
+            nb = clean_neighbours(~usable, h, at)
+            out[at, k] = loo_predict(values, t, nb, deg, at=at)[0]
+        if usable.sum() > 2 * h:
+            nb = clean_neighbours(~usable, h)
+            pred, factor = loo_predict(values, t, nb, deg)
+            scale[k] = robust_scale(((values - pred) / factor)[usable])
+    return out, scale
+
+
+def fill_missing(x, t=None, *, half_window: int = 4, degree: int = 4) -> TemporalScreening:
+    """The missing entries (NaN) of sampled trajectories filled without screening: each
+    by the local polynomial of degree ``degree`` of its ``2 half_window`` nearest
+    readings in time (of the same component), as :func:`temporal_screen` fills them.
+    Its flags are the missing entries; its scales the noise levels of the readings.
+    What :class:`~robust_sindy.HuberSINDy` uses with ``screen=False``: a missing reading
+    is filled, and then treated like a flagged one, even when nothing is screened."""
+    multiple = isinstance(x, (list, tuple))
+    xs = [as_float_array(a, "x", (1, 2), allow_nan=True) for a in (x if multiple else [x])]
+    xs = [a[:, None] if a.ndim == 1 else a for a in xs]
+    ts = (
+        [np.arange(a.shape[0], dtype=float) for a in xs]
+        if t is None
+        else [as_float_array(a, "t", (1,)) for a in (t if multiple else [t])]
+    )
+    flags, repaired, scales = [], [], []
+    for a, ti in zip(xs, ts, strict=True):
+        lost = np.isnan(a)
+        r, sc = _fill(a, ti, lost, half_window, degree)
+        flags.append(lost)
+        repaired.append(r)
+        scales.append(sc)
+    scale = np.fmax.reduce(np.array(scales), axis=0)  # NaN only where every one is
+    return TemporalScreening(np.vstack(flags), np.vstack(repaired), scale, 0)
 
 
 #: Samples of the running median that estimates the smooth bias of a local fit.

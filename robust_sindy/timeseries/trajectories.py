@@ -20,7 +20,10 @@ import numpy as np
 from ..core.validation import as_float_array, check_time
 
 __all__ = [
+    "GAP_STEPS",
+    "MIN_READINGS",
     "Trajectories",
+    "gapless_pieces",
     "input_names",
     "is_dask",
     "is_frame",
@@ -59,6 +62,25 @@ def input_names(names, n: int, q: int) -> list[str]:
 def slices(lengths) -> list[slice]:
     """Consecutive slices of the given lengths."""
     edges = np.cumsum([0, *lengths])
+    return [slice(a, b) for a, b in itertools.pairwise(edges)]
+
+
+#: An interval between consecutive samples longer than this many median steps is a gap
+#: in the record: longer than the temporal screen's window (2 x 4 + 1 samples), so that
+#: no local fit has readings inside it.  (Uniformly random times have intervals this
+#: long about once in 500.)
+GAP_STEPS = 9.0
+
+
+def gapless_pieces(t: np.ndarray) -> list[slice]:
+    """The samples of one record between its gaps (intervals longer than
+    :data:`GAP_STEPS` median steps), as slices in time order."""
+    t = np.asarray(t, dtype=float)
+    if t.size < 3:
+        return [slice(0, t.size)]
+    steps = np.diff(t)
+    cut = np.flatnonzero(steps > GAP_STEPS * np.median(steps)) + 1
+    edges = [0, *cut.tolist(), t.size]
     return [slice(a, b) for a, b in itertools.pairwise(edges)]
 
 
@@ -114,9 +136,30 @@ def _from_frames(x, t, x_dot, u):
     return values(x), t, values(x_dot), values(u), names
 
 
+#: The fewest readings of each state (control, derivative) in a trajectory with missing
+#: entries: the temporal screen's local fits, which fill the others, need this many.
+MIN_READINGS = 10
+
+
 def _in_memory(values, name: str):
-    out = [as_float_array(a, name, (1, 2)) for a in values]
-    return [a[:, None] if a.ndim == 1 else a for a in out]
+    """2-D float arrays; NaN marks a missing reading (each column of each trajectory
+    with missing entries keeps at least :data:`MIN_READINGS` readings)."""
+    out = [as_float_array(a, name, (1, 2), allow_nan=True) for a in values]
+    out = [a[:, None] if a.ndim == 1 else a for a in out]
+    for i, a in enumerate(out):
+        lost = np.isnan(a)
+        if not lost.any():
+            continue
+        have = (~lost).sum(axis=0)
+        few = np.flatnonzero(have < min(MIN_READINGS, a.shape[0]))
+        if few.size:
+            where = f" of trajectory {i}" if len(out) > 1 else ""
+            raise ValueError(
+                f"{name}: column {int(few[0])}{where} has {int(have[few[0]])} readings of "
+                f"{a.shape[0]} (the rest NaN, missing); at least {MIN_READINGS} are needed to "
+                "fill the missing ones from their neighbours in time"
+            )
+    return out
 
 
 def _lazy(values, name: str):
@@ -287,5 +330,26 @@ class Trajectories:
         return input_names(self.names, self.n_states, self.n_controls)
 
     def inputs(self) -> np.ndarray:
-        """The library's inputs (states, then controls) of all samples, stacked."""
+        """The library's inputs (states, then controls) of all samples, stacked (NaN
+        where a reading is missing)."""
         return np.vstack([a if b is None else np.hstack([a, b]) for a, b in self.pairs()])
+
+    @property
+    def missing(self) -> np.ndarray:
+        """Entries of the states not measured (NaN), stacked (m, n)."""
+        return np.isnan(np.vstack(self.x))
+
+    @property
+    def missing_controls(self) -> np.ndarray:
+        """Entries of the controls not measured (NaN), stacked (m, q)."""
+        if self.u is None:
+            return np.zeros((self.n_samples, 0), dtype=bool)
+        return np.isnan(np.vstack(self.u))
+
+    @property
+    def missing_derivatives(self) -> np.ndarray:
+        """Entries of the measured derivatives missing (NaN), stacked (m, n); none when
+        the derivatives are estimated."""
+        if self.x_dot is None:
+            return np.zeros((self.n_samples, self.n_states), dtype=bool)
+        return np.isnan(np.vstack(self.x_dot))

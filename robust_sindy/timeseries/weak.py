@@ -38,7 +38,7 @@ import numpy as np
 import scipy.signal
 
 from .temporal import TemporalScreening
-from .trajectories import Trajectories, slices
+from .trajectories import Trajectories, gapless_pieces, slices
 
 __all__ = [
     "HALF_AMPLITUDE",
@@ -62,6 +62,12 @@ NOISE_FLOOR_FACTOR = 10.0
 #: integration's cubics are then accurate to well below the noise of nearly noise-free
 #: states (tested on Lorenz, uniform and irregular times).
 MIN_SUPPORT_SAMPLES = 15
+#: The product integration's cubic through four samples may amplify their noise at
+#: most this many times on its interval (its Lebesgue constant there: 1.25 for uniform
+#: samples, 2.6 for a gap four times its neighbours, hundreds where two of the four
+#: samples nearly coincide); where clustered sample times leave no such cubic, the
+#: interval's values are the straight line between its ends (constant 1).
+MAX_LEBESGUE = 4.0
 #: Centres of consecutive test functions are this fraction of ``h`` apart (or closer,
 #: down to ``MIN_SPACING``, where the records are short for the library).
 SPACING, MIN_SPACING = 0.25, 0.0625
@@ -79,12 +85,48 @@ def _bump(s: np.ndarray, h: float):
     return base**POWER, -2.0 * POWER * s * base ** (POWER - 1) / h
 
 
-def _stencils(t: np.ndarray, first: int, last: int) -> np.ndarray:
-    """For each interval ``[t_j, t_j+1]``, ``first <= j < last``, the four samples of
-    its cubic: ``j - 1 .. j + 2``, shifted inside the record at its ends."""
+def _stencils(t: np.ndarray, first: int, last: int, shift: int = 1) -> np.ndarray:
+    """For each interval ``[t_j, t_j+1]``, ``first <= j < last``, four samples for its
+    cubic: ``j - shift .. j - shift + 3``, shifted inside the record at its ends."""
     j = np.arange(first, last)
-    start = np.clip(j - 1, 0, max(t.size - 4, 0))
+    start = np.clip(j - shift, 0, max(t.size - 4, 0))
     return start[:, None] + np.arange(min(4, t.size))[None, :]
+
+
+def _interpolation(t: np.ndarray, first: int, last: int, nodes: np.ndarray):
+    """The stencil (J x 4) and interpolation basis at ``nodes`` (J x g x 4) of each
+    interval ``first <= j < last``: of the three cubics whose four samples include the
+    interval's ends, the one with the smallest Lebesgue constant on the interval (the
+    most its values can amplify the samples' noise), or the straight line through the
+    interval's ends (constant 1) where even that one's exceeds ``MAX_LEBESGUE``
+    (clustered sample times, where a cubic through them swings)."""
+    best_stencil, best_basis, best = None, None, None
+    for shift in (1, 0, 2):  # the centred cubic first: it wins ties
+        stencil = _stencils(t, first, last, shift)
+        basis = _lagrange(t, stencil, nodes)
+        lebesgue = np.abs(basis).sum(axis=-1).max(axis=-1)
+        if best is None:
+            best_stencil, best_basis, best = stencil, basis, lebesgue
+            continue
+        better = lebesgue < best - 1e-12
+        best_stencil = np.where(better[:, None], stencil, best_stencil)
+        best_basis = np.where(better[:, None, None], basis, best_basis)
+        best = np.minimum(best, lebesgue)
+    if t.size < 4:
+        return best_stencil, best_basis
+    line = best > MAX_LEBESGUE
+    if line.any():
+        j = np.arange(first, last)[line]
+        at = j[:, None] - best_stencil[line][:, :1]  # the interval's left end in its stencil
+        frac = (nodes[line] - t[j][:, None]) / (t[j + 1] - t[j])[:, None]
+        basis = np.zeros((int(line.sum()), nodes.shape[1], best_stencil.shape[1]))
+        rows = np.arange(basis.shape[0])[:, None]
+        cols = np.arange(nodes.shape[1])[None, :]
+        basis[rows, cols, at] = 1.0 - frac
+        basis[rows, cols, at + 1] = frac
+        best_basis = best_basis.copy()
+        best_basis[line] = basis
+    return best_stencil, best_basis
 
 
 def _lagrange(t: np.ndarray, stencil: np.ndarray, nodes: np.ndarray) -> np.ndarray:
@@ -105,7 +147,9 @@ def weight_functions(t: np.ndarray, h: float, spacing: float = SPACING):
     """``(phi, dphi, centres)``: the quadrature weights (arrays K x m) of the integrals
     of the test functions and of their time derivatives against values sampled at ``t``,
     and the centres (K,), every ``spacing * h`` from ``t[0] + h`` to ``t[-1] - h``
-    (K = 0 when the record is shorter than ``2 h``).
+    (K = 0 when the record is shorter than ``2 h``); in a record with gaps
+    (:func:`~robust_sindy.timeseries.trajectories.gapless_pieces`), in each piece
+    between them.
 
     Product integration: the sampled values are taken as the cubic through the four
     samples around each interval, and its product with the (polynomial) test function is
@@ -113,12 +157,15 @@ def weight_functions(t: np.ndarray, h: float, spacing: float = SPACING):
     only through the values' own smoothness.  ``phi @ v`` approximates
     ``int phi(t) v(t) dt``.
     """
-    lo, hi = t[0] + h, t[-1] - h
     m = t.size
-    if hi < lo or m < 4:
-        return np.zeros((0, m)), np.zeros((0, m)), np.zeros(0)
-    count = int(np.floor((hi - lo) / (spacing * h) + 1e-9)) + 1
-    centres = np.linspace(lo, hi, count)
+    centres = []
+    for piece in gapless_pieces(t):  # no support reaches across a gap in the record
+        lo, hi = t[piece][0] + h, t[piece][-1] - h
+        if hi >= lo and m >= 4:
+            count = int(np.floor((hi - lo) / (spacing * h) + 1e-9)) + 1
+            centres.append(np.linspace(lo, hi, count))
+    centres = np.concatenate(centres) if centres else np.zeros(0)
+    count = centres.size
     phi, dphi = np.zeros((count, m)), np.zeros((count, m))
     for r, c in enumerate(centres):
         first = max(int(np.searchsorted(t, c - h, side="right")) - 1, 0)
@@ -127,8 +174,7 @@ def weight_functions(t: np.ndarray, h: float, spacing: float = SPACING):
         b = np.minimum(t[first + 1 : last + 1], c + h)
         nodes = a[:, None] + (b - a)[:, None] * _NODES[None, :]
         weights = (b - a)[:, None] * _NODE_WEIGHTS[None, :]
-        stencil = _stencils(t, first, last)
-        basis = _lagrange(t, stencil, nodes)  # (J, g, 4)
+        stencil, basis = _interpolation(t, first, last, nodes)  # (J, 4), (J, g, 4)
         value, slope = _bump((nodes - c) / h, h)
         for out, f in ((phi, value), (dphi, slope)):
             shares = np.einsum("jg,jgq->jq", f * weights, basis)

@@ -1,0 +1,241 @@
+"""Records as sensors deliver them, on systems the zoo does not hold: a control input,
+a transient, twenty channels.
+
+The zoo (``robust-sindy zoo``) runs the sensor families (``robust_sindy.zoo``:
+``missing``, ``glitches``, ``irregular``, ``jitter``, ``gaps``) on the polynomial flows of
+dysts and on Lorenz-96 with 6 and 10 states.  This script runs the same families, with
+the same contamination (``zoo.contaminate_family``, ``zoo.sample_times``), on
+
+* ``DuffingForced``: a cubic oscillator driven by a control input ``u`` (states then
+  ``u`` in a cubic library): a glitch or a missing reading next to a control;
+* ``Hopf``: the Hopf normal form on its transient from near the origin to the limit
+  cycle (a cubic library; on the cycle itself ``x^3 + x y^2 = x`` and the terms alias);
+* ``Lorenz96_20``: twenty channels, where 56 % of the samples hold a glitched entry
+  (with exact derivatives only, see :data:`DERIVATIVES`);
+
+with exact derivatives and from the states alone, ``HuberSINDy()`` with its defaults
+beside PySINDy's STLSQ (its default threshold, the samples with a missing entry left
+out, the sample times as an array).
+
+    python validation/sensors.py [--seeds 3] [--out validation/results/sensors]
+"""
+
+from __future__ import annotations
+
+import argparse
+import math
+import time
+import warnings
+from itertools import combinations_with_replacement
+from pathlib import Path
+
+import numpy as np
+import scipy.integrate
+from joblib import Parallel, delayed
+
+from robust_sindy import HuberSINDy, PolynomialLibrary, zoo
+from robust_sindy.flows import lorenz96, write_rows
+
+SYSTEMS = ("DuffingForced", "Hopf", "Lorenz96_20")
+#: Lorenz-96 with 20 states runs with exact derivatives only: from the states alone its
+#: 231-term fit takes over ten minutes on this machine (the lambda path's Newton steps),
+#: which is the scaling work of many-state systems, not this check's.
+DERIVATIVES = {"DuffingForced": ("exact", "states"), "Hopf": ("exact", "states"),
+               "Lorenz96_20": ("exact",)}  # fmt: skip
+
+
+def _powers(k: int, degree: int) -> list:
+    return [c for d in range(degree + 1) for c in combinations_with_replacement(range(k), d)]
+
+
+class System:
+    """A polynomial right-hand side in the states (and a control ``u(t)``)."""
+
+    def __init__(self, name, n, degree, coef, ic, dt, burn=None, forcing=None):
+        self.name, self.n, self.degree, self.coef = name, n, degree, coef
+        self.ic, self.dt, self.burn, self.forcing = np.asarray(ic, float), dt, burn, forcing
+        self.powers = _powers(n + (forcing is not None), degree)
+
+    def library(self, z):
+        out = np.ones((z.shape[0], len(self.powers)))
+        for j, combo in enumerate(self.powers):
+            for i in combo:
+                out[:, j] *= z[:, i]
+        return out
+
+
+def _system(name: str) -> System:
+    if name == "DuffingForced":
+        powers = _powers(3, 3)  # x0, x1, u0
+        at = {c: j for j, c in enumerate(powers)}
+        coef = np.zeros((len(powers), 2))
+        coef[at[(1,)], 0] = 1.0
+        coef[at[(0,)], 1], coef[at[(1,)], 1], coef[at[(0, 0, 0)], 1] = -1.0, -0.2, -1.0
+        coef[at[(2,)], 1] = 1.0
+
+        def forcing(t):
+            return 0.8 * np.sin(1.3 * t) + 0.5 * np.sin(2.9 * t + 1.0)
+
+        return System(name, 2, 3, coef, [1.0, 0.0], 0.03, forcing=forcing)
+    if name == "Hopf":
+        powers = _powers(2, 3)
+        at = {c: j for j, c in enumerate(powers)}
+        coef = np.zeros((len(powers), 2))
+        mu = 0.2
+        coef[at[(0,)], 0], coef[at[(1,)], 0] = mu, -1.0
+        coef[at[(0, 0, 0)], 0], coef[at[(0, 1, 1)], 0] = -1.0, -1.0
+        coef[at[(0,)], 1], coef[at[(1,)], 1] = 1.0, mu
+        coef[at[(0, 0, 1)], 1], coef[at[(1, 1, 1)], 1] = -1.0, -1.0
+        return System(name, 2, 3, coef, [0.05, 0.0], 0.02, burn=0.0)
+    zs = lorenz96(int(name.split("_")[1]))
+    return System(name, zs.n_states, 2, zs.coef, zs.ic, zs.dt)
+
+
+def _simulate(s: System, t: np.ndarray, seed: int):
+    def inputs(tt, v):
+        return v[None] if s.forcing is None else np.concatenate([v, [s.forcing(tt)]])[None]
+
+    def rhs(tt, v):
+        return (s.library(inputs(tt, v)) @ s.coef)[0]
+
+    burn = s.dt * 1000 * (0.5 + (seed % 7) / 7.0) if s.burn is None else s.burn
+    sol = scipy.integrate.solve_ivp(
+        rhs, (0.0, burn + t[-1]), s.ic, method="DOP853", t_eval=burn + t, rtol=1e-10,
+        atol=1e-10,
+    )  # fmt: skip
+    x = sol.y.T
+    u = None if s.forcing is None else s.forcing(burn + t)[:, None]
+    z = x if u is None else np.hstack([x, u])
+    return x, u, s.library(z) @ s.coef
+
+
+def _pysindy(s, t, x, u, x_dot):
+    import pysindy as ps
+
+    lost = np.isnan(x).any(axis=1)
+    x, t = x[~lost], t[~lost]
+    u = None if u is None else u[~lost]
+    x_dot = None if x_dot is None else x_dot[~lost]
+    model = ps.SINDy(optimizer=ps.STLSQ(), feature_library=ps.PolynomialLibrary(degree=s.degree))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        model.fit(x, t=t, x_dot=x_dot, u=u)
+    return np.asarray(model.coefficients()).T
+
+
+def run_case(name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000):
+    s = _system(name)
+    rng = np.random.default_rng(
+        [seed, zoo.ALL_FAMILIES.index(family), zoo.DERIVATIVES.index(derivatives), len(name)]
+    )
+    times = zoo.sample_times(family, n_samples, s.dt, rng)
+    t = s.dt * np.arange(n_samples) if times is None else times
+    x, u, dx = _simulate(s, t, seed)
+    noisy, _ = zoo.contaminate_family(x, family, rng)
+    x_dot = dx if derivatives == "exact" else None
+    rows = []
+    for method in ("huber", "stlsq"):
+        t0 = time.perf_counter()
+        warned, error = [], ""
+        try:
+            if method == "huber":
+                model = HuberSINDy(library=PolynomialLibrary(degree=s.degree))
+                with warnings.catch_warnings(record=True) as caught:
+                    warnings.simplefilter("always")
+                    model.fit(noisy, t, x_dot=x_dot, u=u)
+                coef, warned = model.coef_.T, [str(w.message) for w in caught]
+            else:
+                coef = _pysindy(s, t, noisy, u, x_dot)
+        except Exception as exc:  # a failure counts as a miss, with its reason
+            coef, error = np.full_like(s.coef, np.nan), f"{type(exc).__name__}: {exc}"
+        finite = bool(np.all(np.isfinite(coef)))
+        rows.append(
+            dict(
+                system=name, states=s.n, family=family, derivatives=derivatives, seed=seed,
+                method=method,
+                exact=finite and bool(np.array_equal(coef != 0, s.coef != 0)),
+                error_rel=(
+                    float(np.linalg.norm(coef - s.coef) / np.linalg.norm(s.coef))
+                    if finite else math.inf
+                ),
+                warned=bool(warned), warnings=" | ".join(sorted(set(warned)))[:300],
+                failure=error[:200], seconds=time.perf_counter() - t0,
+            )
+        )  # fmt: skip
+    return rows
+
+
+def table(rows: list[dict]) -> str:
+    lines = [
+        "| system | states | derivatives | "
+        + " | ".join(zoo.SENSOR_FAMILIES)
+        + " | failures warned | right but warned |",
+        "|" + "---|" * (len(zoo.SENSOR_FAMILIES) + 5),
+    ]
+    for name in SYSTEMS:
+        for der in zoo.DERIVATIVES:
+            cells = []
+            for fam in zoo.SENSOR_FAMILIES:
+                got = {
+                    m: [r["exact"] for r in rows if (r["system"], r["derivatives"], r["family"],
+                                                     r["method"]) == (name, der, fam, m)]
+                    for m in ("huber", "stlsq")
+                }  # fmt: skip
+                if not got["huber"]:
+                    cells.append("-")
+                    continue
+                cells.append(
+                    f"{sum(got['huber'])}/{len(got['huber'])} "
+                    f"(STLSQ {sum(got['stlsq'])}/{len(got['stlsq'])})"
+                )
+            ours = [
+                r for r in rows
+                if (r["system"], r["derivatives"], r["method"]) == (name, der, "huber")
+            ]  # fmt: skip
+            if not ours:
+                continue
+            wrong = [r for r in ours if not r["exact"]]
+            right = [r for r in ours if r["exact"]]
+            share = [
+                f"{sum(r['warned'] for r in g)}/{len(g)}" if g else "-" for g in (wrong, right)
+            ]
+            states = ours[0]["states"]
+            lines.append(f"| {name} | {states} | {der} | " + " | ".join(cells + share) + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--jobs", type=int, default=2)
+    parser.add_argument("--out", default="validation/results/sensors")
+    args = parser.parse_args(argv)
+    cases = [
+        (name, fam, der, seed) for name in SYSTEMS for fam in zoo.SENSOR_FAMILIES
+        for der in DERIVATIVES[name] for seed in range(args.seeds)
+    ]  # fmt: skip
+    from tqdm import tqdm
+
+    out = Parallel(n_jobs=args.jobs, return_as="generator")(delayed(run_case)(*c) for c in cases)
+    rows = [r for chunk in tqdm(out, total=len(cases), desc="sensor cases") for r in chunk]
+    folder = Path(args.out)
+    write_rows(rows, folder / "sensors.csv")
+    text = [
+        "# Sensor families on a control input, a transient and twenty channels",
+        "",
+        f"Command: `python validation/sensors.py --seeds {args.seeds}`. 2000 samples; "
+        "families and contamination of `robust_sindy.zoo` (`SENSOR_FAMILIES`). Cells: "
+        "exact support of `HuberSINDy()` over the seeds (PySINDy STLSQ at its default "
+        "threshold, given the same records). The last columns: of the cases "
+        "`HuberSINDy()` got wrong, how many warned; of those it got right, how many "
+        "warned anyway.",
+        "",
+        table(rows),
+        "",
+    ]
+    (folder / "sensors.md").write_text("\n".join(text))
+    print("\n".join(text))
+
+
+if __name__ == "__main__":
+    main()
