@@ -15,6 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from .library import BaseLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
+from .timeseries.temporal import fill_missing
 
 __all__ = ["FitJob", "parse_library", "read_table", "run"]
 
@@ -391,9 +392,8 @@ def _simulate(model, job):
     if np.isnan(start).any():  # a missing first reading: the fit's fill of it
         start = model.temporal_.repaired[0]
     u = job.u
-    if u is not None and np.isnan(u).any():
-        keep = ~np.isnan(u).any(axis=1)  # the controls' readings, interpolated between
-        u = np.column_stack([np.interp(job.t, job.t[keep], c[keep]) for c in u.T])
+    if u is not None and np.isnan(u).any():  # filled as the fit filled them
+        u = fill_missing(u, job.t).repaired
     try:
         sim = model.simulate(start, job.t, u=u)
     except Exception as exc:  # an unstable model is a finding, not a crash

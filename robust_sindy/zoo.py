@@ -107,6 +107,13 @@ class Contamination:
 ZOO_CONTAMINATION = Contamination()
 
 
+def _entries(rng: np.random.Generator, fraction: float, m: int, n: int):
+    """Row and column indices of ``round(fraction m n)`` distinct entries of an (m, n)
+    array, drawn at random: contamination one state at a time."""
+    flat = rng.choice(m * n, round(fraction * m * n), replace=False)
+    return np.unravel_index(flat, (m, n))
+
+
 def contaminate_family(
     x: np.ndarray, family: str, rng: np.random.Generator, params: Contamination = ZOO_CONTAMINATION
 ):
@@ -126,9 +133,8 @@ def contaminate_family(
         noisy[rows] += params.rows_scale * s * rng.normal(size=(rows.size, n))
         bad[rows] = True
     elif family == "spikes":
-        k = round(params.spikes_fraction * m * n)
-        flat = rng.choice(m * n, k, replace=False)
-        i, j = np.unravel_index(flat, (m, n))
+        i, j = _entries(rng, params.spikes_fraction, m, n)
+        k = i.size
         noisy[i, j] += rng.choice([-1.0, 1.0], k) * rng.uniform(*params.spikes_range, k) * s[j]
         bad[i, j] = True
     elif family == "bursts":
@@ -143,8 +149,8 @@ def contaminate_family(
         bad[rows] = True
     elif family in ("missing", "glitches"):
         fraction = params.missing_fraction if family == "missing" else params.glitch_fraction
-        k = round(fraction * m * n)
-        i, j = np.unravel_index(rng.choice(m * n, k, replace=False), (m, n))
+        i, j = _entries(rng, fraction, m, n)
+        k = i.size
         if family == "missing":
             noisy[i, j] = np.nan
         else:

@@ -28,14 +28,14 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.ndimage
 
-from .temporal import fill_missing
+from .temporal import HALF_WINDOW, fill_missing
 from .trajectories import Trajectories
 
 __all__ = ["GAP_HALF_WINDOW", "Missing", "long_gaps"]
 
-#: Half window of the temporal screen's local fits (its ``half_window``): a filled entry
-#: in a run of more missing entries than this is far from its readings.
-GAP_HALF_WINDOW = 4
+#: Half window of the temporal screen's local fits: a filled entry in a run of more
+#: missing entries than this is far from its readings.
+GAP_HALF_WINDOW = HALF_WINDOW
 
 
 def long_gaps(lost: np.ndarray, segments, longer_than: int = GAP_HALF_WINDOW) -> np.ndarray:

@@ -32,6 +32,7 @@ from . import _temporal_kernels
 
 __all__ = [
     "CUTOFF",
+    "HALF_WINDOW",
     "TemporalScreening",
     "fill_missing",
     "noise_flag_bound",
@@ -40,6 +41,8 @@ __all__ = [
 
 #: Robust standard deviations beyond which an entry is flagged (``temporal_screen``).
 CUTOFF = 3.5
+#: Neighbours on each side of the local fits (``temporal_screen``, ``fill_missing``).
+HALF_WINDOW = 4
 
 #: Floor of the temporal screen's scales relative to the largest magnitude of a
 #: component (about 4500 rounding units): a component constant up to rounding (a state
@@ -402,7 +405,7 @@ def temporal_screen(
     x,
     t=None,
     *,
-    half_window: int = 4,
+    half_window: int = HALF_WINDOW,
     degree: int = 4,
     cutoff: float = CUTOFF,
     scale_window: int = 20,
@@ -482,15 +485,7 @@ def temporal_screen(
         raise ValueError(f"degree ({degree}) must be < 2 * half_window ({2 * h})")
     cutoff = check_positive(cutoff, "cutoff")
     scale_half = check_int(scale_window, "scale_window", 1)
-    multiple = isinstance(x, (list, tuple))
-    xs = [as_float_array(a, "x", (1, 2), allow_nan=True) for a in (x if multiple else [x])]
-    xs = [a[:, None] if a.ndim == 1 else a for a in xs]
-    if t is None:
-        ts = [np.arange(a.shape[0], dtype=float) for a in xs]
-    else:
-        ts = [as_float_array(a, "t", (1,)) for a in (t if multiple else [t])]
-        if len(ts) != len(xs) or any(a.size != b.shape[0] for a, b in zip(ts, xs, strict=True)):
-            raise ValueError("t must give one time per sample of x (per trajectory)")
+    xs, ts = _records(x, t)
     flags, repaired, scales = [], [], []
     skipped = 0
     for a, ti in zip(xs, ts, strict=True):
@@ -498,7 +493,7 @@ def temporal_screen(
         if a.shape[0] < 2 * h + 2:
             skipped += 1
             flags.append(lost)
-            repaired.append(_fill(a, ti, lost, h, degree)[0])
+            repaired.append(_fill(a, ti, lost, h, degree))
             continue
         if lost.any():
             f, r, s = _screen_with_missing(a, ti, lost, h, degree, cutoff, scale_half)
@@ -510,6 +505,20 @@ def temporal_screen(
     n = xs[0].shape[1]
     scale = np.max(scales, axis=0) if scales else np.full(n, np.nan)
     return TemporalScreening(np.vstack(flags), np.vstack(repaired), scale, skipped)
+
+
+def _records(x, t):
+    """The trajectories of ``x`` (one array or a list; NaN allowed) as 2-D arrays, and
+    their sample times (uniform when ``t`` is omitted), checked."""
+    multiple = isinstance(x, (list, tuple))
+    xs = [as_float_array(a, "x", (1, 2), allow_nan=True) for a in (x if multiple else [x])]
+    xs = [a[:, None] if a.ndim == 1 else a for a in xs]
+    if t is None:
+        return xs, [np.arange(a.shape[0], dtype=float) for a in xs]
+    ts = [as_float_array(a, "t", (1,)) for a in (t if multiple else [t])]
+    if len(ts) != len(xs) or any(a.size != b.shape[0] for a, b in zip(ts, xs, strict=True)):
+        raise ValueError("t must give one time per sample of x (per trajectory)")
+    return xs, ts
 
 
 def _screen_with_missing(x, t, lost, h, degree, cutoff, scale_half):
@@ -539,57 +548,61 @@ def _screen_with_missing(x, t, lost, h, degree, cutoff, scale_half):
             scale[k] = np.nan
         else:
             flags[have, k], repaired[have, k], scale[k] = done[0][:, 0], done[1][:, 0], done[2][0]
-    filled, _ = _fill(repaired, t, flags, h, degree, only=lost)
-    return flags, filled, scale
+    return flags, _fill(repaired, t, flags, h, degree, only=lost), scale
+
+
+def _usable(x, unusable, k, h, degree):
+    """Component ``k``'s values with the ``unusable`` entries zeroed (never read: they
+    are no one's neighbours) and the degree of its local fits; None with too few."""
+    usable = ~unusable[:, k]
+    if usable.sum() < 2:
+        return None
+    return np.where(usable, x[:, k], 0.0), min(degree, int(usable.sum()) - 1, 2 * h - 1)
 
 
 def _fill(x, t, unusable, h, degree, only=None):
     """``x`` with the entries ``only`` (default: ``unusable``) replaced by the
     leave-one-out local polynomial (:func:`loo_predict`) of their ``2 h`` nearest
-    usable entries in time, and per component the robust scale of the studentised
-    errors of the usable entries (the noise level; NaN with too few)."""
+    usable entries in time."""
     only = unusable if only is None else only
     out = x.copy()
+    for k in range(x.shape[1]):
+        at = np.flatnonzero(only[:, k])
+        fit = _usable(x, unusable, k, h, degree) if at.size else None
+        if fit is not None:
+            nb = clean_neighbours(unusable[:, k], h, at)
+            out[at, k] = loo_predict(fit[0], t, nb, fit[1], at=at)[0]
+    return out
+
+
+def _reading_scale(x, t, unusable, h, degree):
+    """Per component, the robust scale of the studentised leave-one-out errors of the
+    usable entries (their noise level; NaN with ``2 h`` or fewer)."""
     scale = np.full(x.shape[1], np.nan)
     for k in range(x.shape[1]):
-        usable = ~unusable[:, k]
-        if usable.sum() < 2:
-            continue
-        values = np.where(usable, x[:, k], 0.0)  # never read: not a neighbour
-        deg = min(degree, int(usable.sum()) - 1, 2 * h - 1)
-        at = np.flatnonzero(only[:, k])
-        if at.size:
-            nb = clean_neighbours(~usable, h, at)
-            out[at, k] = loo_predict(values, t, nb, deg, at=at)[0]
-        if usable.sum() > 2 * h:
-            nb = clean_neighbours(~usable, h)
-            pred, factor = loo_predict(values, t, nb, deg)
-            scale[k] = robust_scale(((values - pred) / factor)[usable])
-    return out, scale
+        fit = _usable(x, unusable, k, h, degree)
+        if fit is not None and (~unusable[:, k]).sum() > 2 * h:
+            pred, factor = loo_predict(fit[0], t, clean_neighbours(unusable[:, k], h), fit[1])
+            scale[k] = robust_scale(((fit[0] - pred) / factor)[~unusable[:, k]])
+    return scale
 
 
-def fill_missing(x, t=None, *, half_window: int = 4, degree: int = 4) -> TemporalScreening:
+def fill_missing(
+    x, t=None, *, half_window: int = HALF_WINDOW, degree: int = 4
+) -> TemporalScreening:
     """The missing entries (NaN) of sampled trajectories filled without screening: each
     by the local polynomial of degree ``degree`` of its ``2 half_window`` nearest
     readings in time (of the same component), as :func:`temporal_screen` fills them.
     Its flags are the missing entries; its scales the noise levels of the readings.
     What :class:`~robust_sindy.HuberSINDy` uses with ``screen=False``: a missing reading
     is filled, and then treated like a flagged one, even when nothing is screened."""
-    multiple = isinstance(x, (list, tuple))
-    xs = [as_float_array(a, "x", (1, 2), allow_nan=True) for a in (x if multiple else [x])]
-    xs = [a[:, None] if a.ndim == 1 else a for a in xs]
-    ts = (
-        [np.arange(a.shape[0], dtype=float) for a in xs]
-        if t is None
-        else [as_float_array(a, "t", (1,)) for a in (t if multiple else [t])]
-    )
+    xs, ts = _records(x, t)
     flags, repaired, scales = [], [], []
     for a, ti in zip(xs, ts, strict=True):
         lost = np.isnan(a)
-        r, sc = _fill(a, ti, lost, half_window, degree)
         flags.append(lost)
-        repaired.append(r)
-        scales.append(sc)
+        repaired.append(_fill(a, ti, lost, half_window, degree))
+        scales.append(_reading_scale(a, ti, lost, half_window, degree))
     scale = np.fmax.reduce(np.array(scales), axis=0)  # NaN only where every one is
     return TemporalScreening(np.vstack(flags), np.vstack(repaired), scale, 0)
 
