@@ -26,7 +26,14 @@ from itertools import combinations_with_replacement
 import numpy as np
 import scipy.integrate
 
-__all__ = ["ZooSystem", "lorenz96", "polynomial_systems", "simulate_system", "write_rows"]
+__all__ = [
+    "ZooSystem",
+    "lorenz96",
+    "lorenz96_records",
+    "polynomial_systems",
+    "simulate_system",
+    "write_rows",
+]
 
 
 _COEF_CUT = 1e-9
@@ -126,6 +133,31 @@ def lorenz96(n_states: int, forcing: float = 8.0) -> ZooSystem:
     ic = forcing + np.sin(np.arange(n))
     # About 100 samples over the decorrelation time of its chaos (F = 8).
     return ZooSystem(f"Lorenz96_{n}", n, 2, powers, coef, ic, 0.01)
+
+
+def _l96(_t, v, forcing):
+    return (np.roll(v, -1) - np.roll(v, 2)) * np.roll(v, 1) - v + forcing
+
+
+def lorenz96_records(n_states: int, n_samples: int, seed: int = 0, forcing: float = 8.0):
+    """Times, states and exact derivatives of Lorenz-96 (``n_states``, the zoo's
+    sampling step 0.01 after a seed-dependent burn-in), and the system
+    (:func:`robust_sindy.flows.lorenz96`: its true coefficients on the degree-2
+    monomials).  The right-hand side is evaluated directly, not through the library."""
+    system = lorenz96(n_states)
+    dt = system.dt
+    burn = 5.0 + dt * n_samples * (0.5 + (seed % 7) / 7.0)
+    t_eval = burn + dt * np.arange(n_samples)
+    ic = system.ic + 1e-3 * np.random.default_rng(seed).normal(size=n_states)
+    sol = scipy.integrate.solve_ivp(
+        _l96, (0.0, t_eval[-1]), ic, method="DOP853", t_eval=t_eval, rtol=1e-10, atol=1e-10,
+        args=(forcing,),
+    )  # fmt: skip
+    if not sol.success:
+        raise RuntimeError(f"Lorenz-96 integration failed ({sol.message})")
+    x = sol.y.T
+    x_dot = np.array([_l96(0.0, v, forcing) for v in x])
+    return t_eval - t_eval[0], x, x_dot, system
 
 
 def simulate_system(

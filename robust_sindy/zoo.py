@@ -8,6 +8,14 @@ STLSQ ensemble), all given the same data.  Noise is relative to each state's sta
 deviation ``s_k``; every family has the base noise ``1e-3 s_k`` on every entry (see
 :data:`FAMILIES`).
 
+Systems with many states: :func:`run_scaling` times whole identifications on
+Lorenz-96 with 10 to 100 states (libraries of hundreds to thousands of terms) against
+PySINDy's STLSQ (threshold 0.1, its default) on the same records (exact derivatives,
+degree-2 monomials; ``clean``: the base noise, ``rows``: the ``rows`` family), side by
+side in one process on one BLAS thread, with the ratio of the times, optionally the
+peak memory against the library's own size, and whether each found exactly the true
+support.
+
 Needs the optional extra ``zoo`` (``pip install "robust-sindy[zoo]"``: dysts, and
 pysindy for the peers).
 """
@@ -16,12 +24,20 @@ from __future__ import annotations
 
 import math
 import time
+import tracemalloc
 import warnings
 from dataclasses import dataclass
 
 import numpy as np
 
-from .flows import ZooSystem, lorenz96, polynomial_systems, simulate_system, write_rows
+from .flows import (
+    ZooSystem,
+    lorenz96,
+    lorenz96_records,
+    polynomial_systems,
+    simulate_system,
+    write_rows,
+)
 
 __all__ = [
     "ALL_FAMILIES",
@@ -33,11 +49,14 @@ __all__ = [
     "TIME_FAMILIES",
     "ZOO_CONTAMINATION",
     "Contamination",
+    "ScalingRow",
     "ZooSystem",
     "contaminate_family",
     "polynomial_systems",
     "run_case",
+    "run_scaling",
     "sample_times",
+    "scaling_table",
     "simulate_system",
 ]
 
@@ -433,3 +452,129 @@ def write(rows: list[dict], out, command: str) -> list:
     fig.savefig(out / "zoo.png", dpi=110)
     plt.close(fig)
     return [out / "zoo.csv", out / "zoo.md", out / "zoo.png"]
+
+
+# ---------------------------------------------------------------------------------------
+# many states
+
+
+@dataclass
+class ScalingRow:
+    """One method on one record of :func:`run_scaling`."""
+
+    states: int
+    terms: int
+    samples: int
+    family: str
+    method: str
+    seconds: float = np.nan
+    ratio: float = np.nan  # seconds / PySINDy STLSQ's seconds on the same record
+    peak_mb: float = np.nan
+    theta_mb: float = np.nan
+    exact: bool | None = None
+    found: int = 0  # terms found
+    true: int = 0
+    note: str = ""
+
+
+#: Methods :func:`run_scaling` compares, and their names in its table.
+SCALING_METHODS = ("huber", "stlsq")
+NAMES = {"huber": "HuberSINDy()", "stlsq": "PySINDy STLSQ"}
+
+
+def _timed_fit(method, system, t, x, x_dot, seed, memory):
+    """Coefficients, seconds and (``memory``) peak traced MB of one fit on one thread."""
+    from threadpoolctl import threadpool_limits
+
+    def once():
+        with threadpool_limits(1), warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            return _fit_method(method, system, t, x, x_dot, seed)[0]
+
+    t0 = time.perf_counter()
+    coef = once()
+    seconds = time.perf_counter() - t0
+    peak = np.nan
+    if memory:  # a second run: tracing slows allocations, so it is not timed
+        tracemalloc.start()
+        once()
+        peak = tracemalloc.get_traced_memory()[1] / 2**20
+        tracemalloc.stop()
+    return coef, seconds, peak
+
+
+def run_scaling(
+    sizes=((10, 4000), (20, 4000)),
+    families=("clean", "rows"),
+    seed: int = 0,
+    methods=SCALING_METHODS,
+    memory: bool = False,
+    progress: bool = True,
+) -> list[ScalingRow]:
+    """Time each method on Lorenz-96 records of each (states, samples) size and
+    contamination family (:func:`~robust_sindy.flows.lorenz96_records`); with
+    ``memory``, the peak memory of ``HuberSINDy()`` from a second, traced run."""
+    from tqdm import tqdm
+
+    from .compile_kernels import warm_up
+
+    warm_up()  # the kernels compiled or loaded before any timing
+    if "stlsq" in methods:
+        import pysindy  # noqa: F401  (its import is not the fit's time)
+    rows = []
+    bar = tqdm(total=len(sizes) * len(families) * len(methods), desc="scaling",
+               disable=not progress)  # fmt: skip
+    for n, m in sizes:
+        t, x, x_dot, system = lorenz96_records(n, m, seed)
+        truth = system.coef != 0
+        for family in families:
+            noisy, _ = contaminate_family(x, family, np.random.default_rng([seed, n, m]))
+            block = []
+            for method in methods:
+                bar.set_postfix_str(f"n={n} {family} {method}")
+                row = ScalingRow(n, truth.shape[0], m, family, NAMES[method],
+                                 theta_mb=m * truth.shape[0] * 8 / 2**20,
+                                 true=int(truth.sum()))  # fmt: skip
+                try:
+                    coef, row.seconds, row.peak_mb = _timed_fit(
+                        method, system, t, noisy, x_dot, seed, memory and method == "huber"
+                    )
+                    found = np.abs(np.asarray(coef)) > 0
+                    row.exact = bool(np.array_equal(found, truth))
+                    row.found = int(found.sum())
+                except Exception as exc:  # a method failing is a result, not a crash
+                    row.note = f"failed: {type(exc).__name__}: {exc}"[:120]
+                block.append(row)
+                bar.update()
+            base = next((r.seconds for r in block if r.method == NAMES["stlsq"]), np.nan)
+            for r in block:
+                r.ratio = r.seconds / base
+            rows += block
+    bar.close()
+    return rows
+
+
+def scaling_table(rows: list[ScalingRow]) -> str:
+    """Markdown: one line per record, the methods side by side."""
+    out = [
+        "| states (terms) | samples | family | HuberSINDy() | PySINDy STLSQ | time ratio | "
+        "peak memory / Θ |",
+        "|---|---|---|---|---|---|---|",
+    ]
+
+    def cell(r):
+        if r is None:
+            return "not run"
+        if r.exact is None:
+            return r.note
+        verdict = "exact" if r.exact else f"wrong ({r.found} terms, {r.true} true)"
+        return f"{r.seconds:.3g} s, {verdict}"
+
+    for n, m, family in dict.fromkeys((r.states, r.samples, r.family) for r in rows):
+        sel = {r.method: r for r in rows if (r.states, r.samples, r.family) == (n, m, family)}
+        h, s = sel.get(NAMES["huber"]), sel.get(NAMES["stlsq"])
+        ratio = f"{h.ratio:.1f}" if h is not None and np.isfinite(h.ratio) else "n/a"
+        mem = f"{h.peak_mb / h.theta_mb:.1f}" if h is not None and np.isfinite(h.peak_mb) else "n/a"
+        terms = (h or s).terms
+        out.append(f"| {n} ({terms}) | {m} | {family} | {cell(h)} | {cell(s)} | {ratio} | {mem} |")
+    return "\n".join(out)

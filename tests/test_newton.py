@@ -57,6 +57,119 @@ def test_rank_updated_inlier_grams_agree_with_fresh_ones():
     assert cache.updates > 0 and cache.fresh > 2  # both ways were taken
 
 
+@pytest.mark.parametrize("n_out", [0, 15, 180])
+def test_inlier_grams_on_working_sets_are_blocks_of_the_full_one(n_out):
+    # Each column's matrix on its own terms (any order, any size, padded with zeros to
+    # the largest) equals that block of the Gram matrix of its kept rows, whichever way
+    # it is formed (the full matrix minus few outliers, or the inliers directly).
+    rng = np.random.default_rng(10 + n_out)
+    A = rng.normal(size=(200, 12)) * np.logspace(0, 3, 12)
+    w = np.ones((200, 4))
+    for k in range(4):
+        w[rng.choice(200, size=n_out, replace=False), k] = 0.0
+    sizes = np.array([12, 5, 1, 8])
+    idx = np.stack([rng.permutation(12) for _ in range(4)])
+    M = nw.inlier_gram(A, A.T @ A, w, idx, sizes)
+    assert M.shape == (4, 12, 12)
+    for k in range(4):
+        J = idx[k, : sizes[k]]
+        fresh = (A[:, J] * w[:, k, None]).T @ A[:, J]
+        block = M[k, : J.size, : J.size]
+        np.testing.assert_allclose(block, fresh, rtol=0, atol=1e-12 * np.abs(fresh).max())
+        assert np.all(M[k, J.size :] == 0) and np.all(M[k, :, J.size :] == 0)
+
+
+def test_cached_grams_follow_working_sets_that_grow_shrink_and_reorder():
+    # Working sets that gain terms (the cached matrix is bordered), lose them (a block
+    # of it is taken), or change at once, while a few rows change sides: every matrix
+    # matches the one formed afresh on that set, and both the updates and fresh
+    # formations are exercised.
+    rng = np.random.default_rng(3)
+    A = rng.normal(size=(300, 15)) * np.logspace(0, 2, 15)
+    cache = nw.GramCache()
+    inlier = rng.random((300, 2)) < 0.9
+    J = [np.array([0, 3]), np.array([1, 2, 4])]
+    for step in range(40):
+        flip = rng.choice(300, size=(int(rng.integers(0, 8)), 2))
+        for k in range(2):
+            inlier[flip[:, k], k] ^= True
+            move = rng.integers(0, 4)
+            if move == 0:  # a term joins
+                J[k] = np.append(J[k], rng.choice(np.setdiff1d(np.arange(15), J[k])))
+            elif move == 1 and J[k].size > 1:  # a term leaves
+                J[k] = np.delete(J[k], rng.integers(J[k].size))
+            elif move == 2:  # reordered
+                J[k] = rng.permutation(J[k])
+            if step % 13 == 12:  # a new set altogether
+                J[k] = rng.choice(15, size=int(rng.integers(1, 15)), replace=False)
+        sizes = np.array([J[0].size, J[1].size])
+        idx = np.zeros((2, sizes.max()), dtype=int)
+        for k in range(2):
+            idx[k, : sizes[k]] = J[k]
+        M = cache.gram(A, A.T @ A, inlier, ["a", "b"], idx, sizes)
+        for k in range(2):
+            rows = A[inlier[:, k]][:, J[k]]
+            fresh = rows.T @ rows
+            d = np.sqrt(np.diag(fresh))
+            got = M[k, : J[k].size, : J[k].size]
+            np.testing.assert_allclose(got / np.outer(d, d), fresh / np.outer(d, d), atol=1e-11)
+    assert cache.updates > 20 and cache.fresh > 2
+
+
+def test_large_blocks_are_solved_by_cholesky_as_by_the_eigen_decomposition():
+    # From CHOLESKY_SIZE terms a block is factorised by Cholesky when its condition
+    # estimate is far from the eigenvalue cut: the same solution as the eigen-solver's.
+    # A numerically singular block still goes to the eigen-solver and is reported.
+    rng = np.random.default_rng(4)
+    s = nw.CHOLESKY_SIZE + 12
+    B = rng.normal(size=(3, 4 * s, s)) * np.logspace(0, 2, s)
+    M = np.einsum("kia,kib->kab", B, B)
+    M[2][:, 1] = M[2][:, 0]
+    M[2][1, :] = M[2][0, :]
+    b = rng.normal(size=(3, s))
+    valid = np.ones((3, s), dtype=bool)
+    valid[1, s - 5 :] = False  # a smaller block, still above the size
+    out, deficient = nw._solve_blocks(M, b, valid)
+    assert deficient.tolist() == [False, False, True]
+    for k in range(2):
+        n = int(valid[k].sum())
+        np.testing.assert_allclose(out[k, :n], np.linalg.solve(M[k, :n, :n], b[k, :n]),
+                                   rtol=1e-8)  # fmt: skip
+        assert np.all(out[k, n:] == 0)
+    np.testing.assert_allclose(out[2], np.linalg.pinv(M[2], rcond=1e-11, hermitian=True) @ b[2],
+                               rtol=1e-6, atol=1e-12)  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_terms_enter_the_support_with_the_sign_that_made_them_enter(seed):
+    # A warm start from a larger lam on a library of correlated terms: many terms enter
+    # at once, and the joint step would give some the other sign (no descent
+    # direction).  After the sign correction every entering term moves with its sign
+    # and the step decreases the objective.
+    from robust_sindy.core.losses import huber_psi
+
+    theta, y = lorenz_library(seed, 3)
+    prepared = prepare(theta)
+    A, T = prepared.A, 1.0 / prepared.a_norms**2
+    ys = y / np.abs(y).max(axis=0)
+    delta = np.full(3, 0.05)
+    lmax = np.atleast_1d(lambda_max(A @ np.eye(A.shape[1]), ys, delta))
+    start = driver.solve(A @ np.eye(A.shape[1]), ys, delta, 0.3 * lmax).coef
+    lam = np.broadcast_to(0.03 * lmax, start.shape).copy()
+    r = ys - A @ start
+    g = A.T @ huber_psi(r, delta)
+    free = np.zeros_like(start, dtype=bool)
+    d = nw.direction(A, prepared.G, T, r, delta, lam, start, g, free, np.zeros(3))
+    u = start + T[:, None] * g
+    entering = (start == 0) & (d != 0)
+    assert entering.any()
+    assert np.all(np.sign(d[entering]) == np.sign(u[entering]))
+    q = A @ d
+    s = np.where(start != 0, np.sign(start), np.sign(d))
+    slope = (lam * s * d).sum(axis=0) - np.einsum("ij,ij->j", huber_psi(r, delta), q)
+    assert np.all(slope < 0)
+
+
 def test_masked_solve_solves_each_support_block_and_zeroes_the_rest():
     rng = np.random.default_rng(1)
     B = rng.normal(size=(3, 30, 6))

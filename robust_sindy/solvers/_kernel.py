@@ -10,7 +10,9 @@ falsi on the monotone, piecewise-linear slope of the convex piecewise-quadratic
 objective; also past the full step of a damped or reweighted direction whose slope is
 still negative there: on near-least-absolute-deviation pieces such a step can be orders
 of magnitude too short), with the NumPy iteration's Levenberg-Marquardt rule and its
-proximal-gradient step where the direction is no descent direction.  The passes over
+proximal-gradient step where the direction is no descent direction (the NumPy
+direction's sign correction of entering terms, which keeps such directions rare on
+large correlated libraries, is not compiled).  The passes over
 the library are BLAS products (on one thread); the columns, independent, run side by side
 on the machine's cores (:func:`robust_sindy.core.threads.map_threads`), each computed as it
 would be alone.  On small problems a step costs far less than the NumPy iteration's

@@ -20,9 +20,16 @@ Hessian on ``S`` is the inlier Gram matrix, formed from the full Gram matrix
     d_{\\bar S} = -\\xi_{\\bar S},
 
 a ``|S| x |S|`` system per column, independent of the number of samples once the
-outliers are the minority.  From one step to the next only a few samples change sides,
-and ``M`` is updated by those rows (:class:`GramCache`; formed afresh when many change
-or the updates' rounding could matter).  The step is in correction form: its right-hand side is the
+outliers are the minority.  ``M`` is only ever formed on the column's working set
+(the support and the other nonzero coefficients, :func:`working_sets`), never on the
+whole library: a step of a sparse model costs its support, and a library of thousands
+of terms needs no ``p x p`` matrix per column.  From one step to the next only a few
+samples change sides, and ``M`` is updated by those rows, bordered by the terms that
+joined the working set (:class:`GramCache`; formed afresh when many change or the
+updates' rounding could matter).  A term at zero that enters ``S`` with the sign
+opposite to its step is kept at zero and the system solved again: on a warm-started
+path many correlated terms enter at once, and the joint step would otherwise be no
+descent direction.  The step is in correction form: its right-hand side is the
 gradient, computed from residuals ``y - Theta xi`` evaluated afresh at every step, so
 each step also refines the previous one and an exact fit keeps residuals at rounding
 level although the systems are normal equations.  When the inliers do not determine
@@ -42,9 +49,11 @@ columns it cannot certify within its step budget to the ADMM, warm-started from 
 Newton point.
 
 One step costs three passes over ``Theta`` for all columns together (residual,
-gradient, the direction's image), ``|changed| p^2`` for the Gram update (``|O| p^2``
-when formed afresh) and a ``|S|``-sized eigen-decomposition per column; where that
-needs a cut, a singular value decomposition of the weighted rows on the support
+gradient, the direction's image), ``|changed| w^2`` for the Gram update on a working
+set of ``w`` terms (``|O| w^2`` when formed afresh) and a ``|S|``-sized factorisation
+per column (Cholesky with a condition estimate from :data:`CHOLESKY_SIZE` terms, an
+eigen-decomposition below or where the estimate comes near the cut); where that needs
+a cut, a singular value decomposition of the weighted rows on the support
 (``|rows| |S|^2``).
 
 On small problems the driver runs a compiled twin of this iteration first
@@ -56,6 +65,7 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.linalg
 
 from ..core.certificates import column_norms, kkt_from_gradient, rounding_free
 from ..core.losses import huber_psi, soft_threshold
@@ -76,7 +86,9 @@ __all__ = ["GramCache", "NewtonRun", "line_search", "newton", "row_direction"]
 
 #: A column has stalled when its KKT violation has not halved for this many steps while
 #: its objective changed by at most ``_STALL_OBJ`` relative: the floating-point floor.
-_STALL_STEPS, _STALL_OBJ = 5, 1e-12
+#: A column already certified (KKT below ``tol``) that is only seeking the margin below
+#: it stops after ``_CERTIFIED_STEPS`` steps without halving its violation.
+_STALL_STEPS, _STALL_OBJ, _CERTIFIED_STEPS = 5, 1e-12, 2
 
 
 # ---------------------------------------------------------------------------------------
@@ -169,39 +181,71 @@ def line_search(r, q, x, d, lam, delta, upper: float | None = None) -> float:
 # one batched Newton step
 
 
-def inlier_gram(A: np.ndarray, G: np.ndarray, w: np.ndarray) -> np.ndarray:
-    """``M_k = A^T diag(w_k) A`` for every column ``k`` of the row weights ``w`` (m, k),
-    each in ``[0, 1]``.
+def _block(A, rows: np.ndarray, J: np.ndarray) -> np.ndarray:
+    """``A[rows][:, J]`` (``A`` an array or a :class:`~.problem.ScaledColumns`), gathered
+    without forming the rows' other entries."""
+    if isinstance(A, np.ndarray):
+        return A[np.ix_(rows, J)]
+    return A.theta[np.ix_(rows, J)] / A.scale[J]
 
-    Formed as ``G`` minus the rows with ``w < 1`` while those are few and carry little of
-    any column's norm; from the rows with ``w > 0`` directly otherwise (no cancellation
-    when most of the Gram matrix sits in the down-weighted rows, and weights as small as
-    1e-300 keep their value).
+
+def working_sets(S: np.ndarray, x: np.ndarray):
+    """Per column, the terms whose inlier Gram entries a Newton step reads: the support
+    ``S`` (its block is solved) then the other nonzero coefficients (their columns of
+    the Gram matrix multiply them on the right-hand side).
+
+    Returns ``idx`` (k, w), each column's terms first (the support in order, then the
+    others) padded with the rest, and the sizes ``n_s``, ``n_w`` (k,) of the support and
+    of the whole set.  A step costs the working sets' sizes, not the library's.
+    """
+    other = (x != 0) & ~S
+    key = np.where(S, 0, np.where(other, 1, 2)).T
+    n_s, n_w = S.sum(axis=0), S.sum(axis=0) + other.sum(axis=0)
+    w = max(int(n_w.max(initial=0)), 1)
+    return np.argsort(key, axis=1, kind="stable")[:, :w], n_s, n_w
+
+
+def inlier_gram(A, G: np.ndarray, w: np.ndarray, idx=None, sizes=None) -> np.ndarray:
+    """``M_k = A_J^T diag(w_k) A_J`` for every column ``k`` of the row weights ``w``
+    (m, k), each in ``[0, 1]``, on the terms ``J = idx[k, :sizes[k]]`` (default: every
+    term); entries beyond ``sizes[k]`` are zero.
+
+    Formed as ``G_JJ`` minus the rows with ``w < 1`` while those are few and carry little
+    of any column's norm; from the rows with ``w > 0`` directly otherwise (no
+    cancellation when most of the Gram matrix sits in the down-weighted rows, and
+    weights as small as 1e-300 keep their value).
     """
     m, p = A.shape
-    M = np.empty((w.shape[1], p, p))
-    down = np.flatnonzero((w < 1.0).any(axis=1))  # rows down-weighted in some column
-    direct = np.ones(w.shape[1], dtype=bool)
-    if 2 * down.size <= m:
-        AO = A[down]  # gathered once for all columns
-        for k in range(w.shape[1]):  # one BLAS product per target column
-            M[k] = G - (AO * (1.0 - w[down, k, None])).T @ AO
-            ratio = np.diag(M[k]) / np.maximum(np.diag(G), np.finfo(float).tiny)
-            direct[k] = np.min(ratio, initial=1.0) <= 1.0 - DIRECT_GRAM
-    for k in np.flatnonzero(direct):
+    k_all = w.shape[1]
+    if idx is None:
+        idx, sizes = np.tile(np.arange(p), (k_all, 1)), np.full(k_all, p)
+    s = idx.shape[1]
+    M = np.zeros((k_all, s, s))
+    for k in range(k_all):  # one BLAS product per target column
+        J = idx[k, : sizes[k]]
+        down = np.flatnonzero(w[:, k] < 1.0)
+        if 2 * down.size <= m:
+            AJ = _block(A, down, J)
+            Mk = G[np.ix_(J, J)] - (AJ * (1.0 - w[down, k, None])).T @ AJ
+            ratio = np.diag(Mk) / np.maximum(np.diag(G)[J], np.finfo(float).tiny)
+            if np.min(ratio, initial=1.0) > 1.0 - DIRECT_GRAM:
+                M[k, : J.size, : J.size] = Mk
+                continue
         keep = np.flatnonzero(w[:, k] > 0.0)
-        AI = A[keep]
-        M[k] = (AI * w[keep, k, None]).T @ AI
+        AJ = _block(A, keep, J)
+        M[k, : J.size, : J.size] = (AJ * w[keep, k, None]).T @ AJ
     return M
 
 
 class GramCache:
-    """The inlier Gram matrix of each column's last Newton step, with its inlier set.
+    """The inlier Gram matrix of each column's recent Newton steps on their working
+    sets, with its inlier set.
 
     A step whose inlier set differs from the last one in a few samples updates that
-    matrix by those rows (``M + A_in^T A_in - A_out^T A_out``, ``|changed| p^2``)
-    instead of forming it from the outliers or the inliers (``|O| p^2`` or
-    ``|I| p^2``); :data:`DRIFT` bounds the rounding the updates may accumulate.
+    matrix by those rows (``M + A_in^T A_in - A_out^T A_out``, ``|changed| w^2``)
+    instead of forming it from the outliers or the inliers (``|O| w^2`` or
+    ``|I| w^2``), after bordering it with the terms that joined the working set
+    (``|O| w |new|``); :data:`DRIFT` bounds the rounding the updates may accumulate.
     """
 
     def __init__(self):
@@ -209,34 +253,140 @@ class GramCache:
         self.updates = 0
         self.fresh = 0
 
-    def gram(self, A, G, inlier: np.ndarray, ids) -> np.ndarray:
-        """``A^T diag(inlier_k) A`` for every column ``k`` of the boolean ``inlier``
-        (m, k); ``ids`` name the columns across calls."""
+    def gram(self, A, G, inlier: np.ndarray, ids, idx=None, sizes=None) -> np.ndarray:
+        """``A_J^T diag(inlier_k) A_J`` for every column ``k`` of the boolean ``inlier``
+        (m, k) on its terms ``J`` (``idx``, ``sizes`` as in :func:`inlier_gram`); ``ids``
+        name the columns across calls."""
         m, p = A.shape
-        M = np.empty((inlier.shape[1], p, p))
+        k_all = inlier.shape[1]
+        if idx is None:
+            idx, sizes = np.tile(np.arange(p), (k_all, 1)), np.full(k_all, p)
+        s = idx.shape[1]
+        M = np.zeros((k_all, s, s))
         fresh = []
+        where = np.full(p, -1)
         for c, key in enumerate(ids):
             entry = self.entries.get(key)
+            J = idx[c, : sizes[c]]
             if entry is not None:
-                old, M0, drift = entry
+                old, J0, M0, drift = entry
                 changed = np.flatnonzero(inlier[:, c] != old)
-                if changed.size <= UPDATE_ROWS * m:
-                    rows = A[changed]
+                where[J0] = np.arange(J0.size)
+                new = J[where[J] < 0]
+                where[J0] = -1
+                # A working set much smaller than the stored one is formed afresh.
+                if changed.size <= UPDATE_ROWS * m and J0.size + new.size <= 2 * J.size:
+                    if new.size:
+                        J0, M0, drift = _border(A, G, old, J0, M0, drift, new)
+                    where[J0] = np.arange(J0.size)
+                    at = where[J]
+                    where[J0] = -1
+                    rows = _block(A, changed, J0)
                     sign = np.where(inlier[changed, c], 1.0, -1.0)
-                    Mc = M0 + (rows * sign[:, None]).T @ rows
-                    drift = drift + np.einsum("ij,ij->j", rows, rows)
-                    if np.all(drift <= DRIFT * np.diag(Mc)):
-                        M[c] = Mc
-                        self.entries[key] = (inlier[:, c].copy(), Mc, drift)
+                    M1 = M0 + (rows * sign[:, None]).T @ rows
+                    d1 = drift + np.einsum("ij,ij->j", rows, rows)
+                    if np.all(d1 <= DRIFT * np.diag(M1)):
+                        M[c, : J.size, : J.size] = M1[np.ix_(at, at)]
+                        self.entries[key] = (inlier[:, c].copy(), J0, M1, d1)
                         self.updates += 1
                         continue
             fresh.append(c)
         if fresh:
-            M[fresh] = inlier_gram(A, G, inlier[:, fresh].astype(float))
+            M[fresh] = inlier_gram(A, G, inlier[:, fresh].astype(float), idx[fresh], sizes[fresh])
             for c in fresh:
-                self.entries[ids[c]] = (inlier[:, c].copy(), M[c].copy(), np.zeros(p))
+                n = sizes[c]
+                J = idx[c, :n].copy()
+                self.entries[ids[c]] = (inlier[:, c].copy(), J, M[c, :n, :n].copy(), np.zeros(n))
             self.fresh += len(fresh)
         return M
+
+
+def _border(A, G, inlier, J0, M0, drift, new):
+    """The inlier Gram matrix ``M0`` on ``J0`` bordered with the terms ``new``: their
+    rows and columns formed as :func:`inlier_gram` forms a matrix afresh."""
+    m = A.shape[0]
+    Jx = np.concatenate([J0, new])
+    k0 = J0.size
+    out = np.flatnonzero(~inlier)
+    B = None
+    if 2 * out.size <= m:
+        AO = _block(A, out, Jx)
+        B = G[np.ix_(Jx, new)] - AO.T @ AO[:, k0:]
+        ratio = np.diag(B[k0:]) / np.maximum(np.diag(G)[new], np.finfo(float).tiny)
+        if np.min(ratio, initial=1.0) <= 1.0 - DIRECT_GRAM:
+            B = None
+    if B is None:
+        AI = _block(A, np.flatnonzero(inlier), Jx)
+        B = AI.T @ AI[:, k0:]
+    Mx = np.empty((Jx.size, Jx.size))
+    Mx[:k0, :k0] = M0
+    Mx[:, k0:] = B
+    Mx[k0:, :k0] = B[:k0].T
+    return Jx, Mx, np.concatenate([drift, np.zeros(new.size)])
+
+
+#: Support sizes from which a Newton system is solved by a Cholesky factorisation (with
+#: a condition estimate) instead of an eigen-decomposition: several times cheaper, and
+#: the same solution where no eigenvalue would be cut.
+CHOLESKY_SIZE = 48
+
+
+#: Margin of :func:`_cholesky_solve` between its condition estimate and the eigenvalue
+#: cut (the estimate may exceed the true reciprocal condition number by a small factor).
+CHOLESKY_MARGIN = 1e3
+
+
+def _cholesky_solve(Mk: np.ndarray, b: np.ndarray):
+    """``Mk^-1 b`` by Cholesky where no eigenvalue of ``Mk`` can be near the cut: its
+    estimated reciprocal 1-norm condition number at least :data:`CHOLESKY_MARGIN` times
+    :data:`EIG_CUT` (for a symmetric matrix the 2-norm condition number is at most the
+    1-norm's, so the eigen-solver would cut nothing and solve the same system);
+    else ``None``."""
+    c, info = scipy.linalg.lapack.dpotrf(Mk, lower=True, clean=False)
+    if info != 0:
+        return None
+    rcond, info = scipy.linalg.lapack.dpocon(c, np.abs(Mk).sum(axis=0).max(), uplo="L")
+    if info != 0 or not rcond >= CHOLESKY_MARGIN * EIG_CUT:
+        return None
+    out, info = scipy.linalg.lapack.dpotrs(c, b[:, None], lower=True)
+    return out[:, 0] if info == 0 and np.all(np.isfinite(out)) else None
+
+
+def _solve_blocks(Mm: np.ndarray, b: np.ndarray, valid: np.ndarray):
+    """Solve the leading blocks ``Mm[k][valid_k, valid_k] d = b[k][valid_k]`` (valid
+    entries first in each row of ``valid``); returns the solutions (k, s), zero
+    beyond each block, and the columns where an eigenvalue was cut."""
+    k, s = valid.shape
+    sizes = valid.sum(axis=1)
+    Mm = np.where(valid[:, :, None] & valid[:, None, :], Mm, 0.0)
+    diag = np.einsum("kii->ki", Mm)
+    top = np.max(np.where(valid, diag, 0.0), axis=1)
+    top = np.where(top > 0, top, 1.0)
+    out = np.zeros((k, s))
+    deficient = np.zeros(k, dtype=bool)
+    pending = np.ones(k, dtype=bool)
+    if s >= CHOLESKY_SIZE:
+        for j in np.flatnonzero(sizes >= CHOLESKY_SIZE):
+            n = sizes[j]
+            x = _cholesky_solve(Mm[j, :n, :n] / top[j], b[j, :n] / top[j])
+            if x is not None:
+                out[j, :n], pending[j] = x, False
+    rest = np.flatnonzero(pending)
+    if rest.size:
+        # Padded with a multiple of the identity (the largest diagonal entry, so the
+        # eigenvalue cut refers to the block's own scale) and normalised to a unit
+        # diagonal maximum: the eigen-solver sees no tiny or huge entries (reweighted
+        # steps with delta far below the residuals have weights ~1e-300).
+        Mr, vr, tr = Mm[rest], valid[rest], top[rest]
+        pos = np.arange(s)
+        Mr[:, pos, pos] = np.where(vr, np.einsum("kii->ki", Mr), tr[:, None])
+        w, V = np.linalg.eigh(Mr / tr[:, None, None])
+        keep = w > EIG_CUT * np.maximum(w[:, -1:], 0.0)
+        c = np.einsum("kji,kj->ki", V, np.where(vr, b[rest], 0.0))
+        c = np.where(keep, c / np.where(keep, w * tr[:, None], 1.0), 0.0)
+        out[rest] = np.where(vr, np.einsum("kij,kj->ki", V, c), 0.0)
+        deficient[rest] = ~keep.all(axis=1)
+    return out, deficient
 
 
 def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
@@ -244,9 +394,7 @@ def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
 
     ``M`` is (k, p, p), ``rhs`` and ``S`` (p, k).  Each column's block ``M[S, S]`` is
     gathered into the first ``|S_k|`` rows and columns of a batch as large as the
-    largest support (the cost is that of the supports, not of the library), padded
-    with a multiple of the identity (the largest diagonal entry on ``S``, so the
-    eigenvalue cut refers to the support's own scale) and a zero right-hand side.
+    largest support (the cost is that of the supports, not of the library).
     Returns the minimum-norm solution with eigenvalues below ``1e-11`` of the largest cut
     (``d`` zero off ``S``) and a mask of the columns where a cut was needed.
     """
@@ -258,25 +406,18 @@ def masked_solve(M: np.ndarray, rhs: np.ndarray, S: np.ndarray):
     idx = np.argsort(~St, axis=1, kind="stable")[:, :s]
     valid = np.arange(s)[None, :] < sizes[:, None]  # (k, s)
     cols = np.arange(k)[:, None]
-    Mm = M[cols[:, :, None], idx[:, :, None], idx[:, None, :]]
-    Mm = np.where(valid[:, :, None] & valid[:, None, :], Mm, 0.0)
-    diag = np.einsum("kii->ki", Mm)
-    top = np.max(np.where(valid, diag, 0.0), axis=1)
-    top = np.where(top > 0, top, 1.0)
-    pos = np.arange(s)
-    Mm[:, pos, pos] = np.where(valid, diag, top[:, None])
-    # Normalised to a unit diagonal maximum: the eigen-solver sees no tiny or huge
-    # entries (reweighted steps with delta far below the residuals have weights ~1e-300).
-    w, V = np.linalg.eigh(Mm / top[:, None, None])
-    keep = w > EIG_CUT * np.maximum(w[:, -1:], 0.0)
-    b = np.where(valid, rhs.T[cols, idx], 0.0)
-    c = np.einsum("kji,kj->ki", V, b)
-    c = np.where(keep, c / np.where(keep, w * top[:, None], 1.0), 0.0)
-    block = np.einsum("kij,kj->ki", V, c)
-    d = np.zeros((p, k))
+    block, deficient = _solve_blocks(
+        M[cols[:, :, None], idx[:, :, None], idx[:, None, :]], rhs.T[cols, idx], valid
+    )
+    return _scatter(block, idx, valid, p), deficient
+
+
+def _scatter(block: np.ndarray, idx: np.ndarray, valid: np.ndarray, p: int) -> np.ndarray:
+    """The blocks' solutions (k, s) at their terms ``idx`` in a (p, k) array."""
+    d = np.zeros((p, block.shape[0]))
     rows, where = np.nonzero(valid)
     d[idx[rows, where], rows] = block[rows, where]
-    return d, ~keep.all(axis=1)
+    return d
 
 
 def direction(A, G, T, r, delta, lam, x, g, free, mu, cache=None, ids=None):
@@ -287,26 +428,54 @@ def direction(A, G, T, r, delta, lam, x, g, free, mu, cache=None, ids=None):
     system nearly singular (a least-absolute-deviation-like piece), it keeps the step
     bounded; near the optimum it is zero and the step is Newton's.  ``cache``
     (:class:`GramCache`, columns named by ``ids``) updates the inlier Gram matrices of
-    the previous step instead of forming them afresh.
+    the previous step instead of forming them afresh.  The Gram matrices are formed on
+    each column's working set only (:func:`working_sets`).
+
+    A term at zero enters the support with the sign of its proximal-gradient point;
+    where the step gives it the other sign, the objective's slope along the step counts
+    its penalty with the wrong sign and the step may be no descent direction (many
+    correlated terms entering at once, as on a warm-started path).  Such terms are kept
+    at zero and the step solved again, until every entering term moves with its sign
+    (each round leaves out at least one term).
     """
+    p = A.shape[1]
     u = x + T[:, None] * g
     S = (np.abs(u) > T[:, None] * lam) | free
     sigma = np.where(free, 0.0, np.sign(u))
-    off = np.where(S, 0.0, x)
-    eye = np.eye(A.shape[1])
+    lam_sigma = lam * sigma
 
-    def solve(weights, cols):
+    def solve(weights, which):
+        idx, n_s, n_w = working_sets(S[:, which], x[:, which])
+        s = max(int(n_s.max(initial=0)), 1)
+        cols = np.arange(which.size)[:, None]
+        pos = np.arange(idx.shape[1])[None, :]
+        on_s = pos < n_s[:, None]
+        # The right-hand side on the support: g - lam sigma + M_{S, other} x_other.
+        x_other = np.where(~on_s & (pos < n_w[:, None]), x[:, which].T[cols, idx], 0.0)
         if cache is not None and weights.dtype == bool:
-            M = cache.gram(A, G, weights, [ids[c] for c in cols])
+            M = cache.gram(A, G, weights, [ids[c] for c in which], idx, n_w)
         else:
-            M = inlier_gram(A, G, weights.astype(float, copy=False))
-        rhs = g[:, cols] - lam[:, cols] * sigma[:, cols] + np.einsum("kij,jk->ik", M, off[:, cols])
-        return masked_solve(M + mu[cols, None, None] * eye, rhs, S[:, cols])
+            M = inlier_gram(A, G, weights.astype(float, copy=False), idx, n_w)
+        rhs = (g[:, which] - lam_sigma[:, which]).T[cols, idx]
+        rhs += np.einsum("kij,kj->ki", M, x_other)
+        Mm = M[:, :s, :s].copy()
+        diag = np.arange(s)
+        Mm[:, diag, diag] += mu[which, None]
+        block, cut = _solve_blocks(Mm, rhs[:, :s], on_s[:, :s])
+        return _scatter(block, idx[:, :s], on_s[:, :s], p), cut
 
     everything = np.arange(r.shape[1])
     inlier = np.abs(r) <= delta
     d, deficient = solve(inlier, everything)
-    lam_sigma = lam * sigma
+    entering = S & (x == 0) & ~free
+    while True:
+        wrong = entering & (np.sign(d) != sigma)
+        again = np.flatnonzero(wrong.any(axis=0) & ~deficient)
+        if not again.size:
+            break
+        S[:, again] &= ~wrong[:, again]
+        entering[:, again] &= ~wrong[:, again]
+        d[:, again], deficient[again] = solve(inlier[:, again], again)
 
     def from_rows(k, weights):
         return row_direction(
@@ -420,7 +589,8 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
 
     ``y`` (m, k), ``delta`` (k,), ``lam`` (p, k) and the start ``x`` (p, k) are in the
     units of ``prepared.A``.  A column stops at a relative KKT violation below
-    ``tol / 10`` (a margin for the check in the caller's units), when no step makes
+    ``tol / 10`` (a margin for the check in the caller's units), after two steps that
+    did not halve the violation of a point already below ``tol``, when no step makes
     progress, or when it has stalled: its KKT violation has not halved in 5 steps while
     its objective no longer changes (1e-12 relative), which is where rounding in an
     ill-conditioned library ends what any method can certify.  The returned point is
@@ -469,7 +639,8 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
             ref_obj[act] - obj <= _STALL_OBJ * np.abs(obj)
         )
         stalled[act] = stuck & ~np.isfinite(best_kkt[act])
-        go = (kkt > 0.1 * tol) & ~stuck
+        settled = np.isfinite(best_kkt[act]) & (step - ref_step[act] >= _CERTIFIED_STEPS)
+        go = (kkt > 0.1 * tol) & ~stuck & ~settled
         if step == max_steps or not go.any():
             break
         if not go.all():
