@@ -5,6 +5,7 @@ import pytest
 
 from robust_sindy import zoo
 from robust_sindy.cli import main
+from robust_sindy.flows import lorenz96_records
 
 
 @pytest.fixture(scope="module")
@@ -94,3 +95,24 @@ def test_zoo_families_option_is_checked(capsys):
     with pytest.raises(SystemExit):
         main(["zoo", "--families", "clean,foo"])
     assert "unknown families ['foo']" in capsys.readouterr().err
+
+
+def test_lorenz96_records_follow_the_systems_coefficients():
+    # The direct right-hand side of the records and the zoo system's coefficients on
+    # the degree-2 monomials are the same equations.
+    t, x, x_dot, system = lorenz96_records(7, 300, seed=2)
+    assert x.shape == x_dot.shape == (300, 7) and np.all(np.diff(t) > 0)
+    np.testing.assert_allclose(x_dot, system.rhs(x), rtol=1e-12, atol=1e-11)
+    assert x.std(axis=0).min() > 1.0  # on the attractor, not at the fixed point
+
+
+def test_the_scaling_run_times_and_checks_each_method():
+    rows = zoo.run_scaling(((5, 1500),), families=("clean",), methods=("huber", "stlsq"),
+                           memory=True, progress=False)  # fmt: skip
+    huber, stlsq = rows
+    assert huber.method == "HuberSINDy()" and stlsq.method == "PySINDy STLSQ"
+    assert huber.exact is True and huber.seconds > 0 and huber.peak_mb > 0
+    assert huber.ratio == pytest.approx(huber.seconds / stlsq.seconds)
+    assert huber.true == 5 * 4 and huber.terms == 21
+    text = zoo.scaling_table(rows)
+    assert "| 5 (21) | 1500 | clean | " in text and "exact" in text
