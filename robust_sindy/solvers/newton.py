@@ -333,7 +333,7 @@ CHOLESKY_SIZE = 48
 
 #: Margin of :func:`_cholesky_solve` between its condition estimate and the eigenvalue
 #: cut (the estimate may exceed the true reciprocal condition number by a small factor).
-CHOLESKY_MARGIN = 1e3
+CHOLESKY_MARGIN = 10.0
 
 
 def _cholesky_solve(Mk: np.ndarray, b: np.ndarray):
