@@ -149,13 +149,7 @@ def lorenz96_records(n_states: int, n_samples: int, seed: int = 0, forcing: floa
     burn = 5.0 + dt * n_samples * (0.5 + (seed % 7) / 7.0)
     t_eval = burn + dt * np.arange(n_samples)
     ic = system.ic + 1e-3 * np.random.default_rng(seed).normal(size=n_states)
-    sol = scipy.integrate.solve_ivp(
-        _l96, (0.0, t_eval[-1]), ic, method="DOP853", t_eval=t_eval, rtol=1e-10, atol=1e-10,
-        args=(forcing,),
-    )  # fmt: skip
-    if not sol.success:
-        raise RuntimeError(f"Lorenz-96 integration failed ({sol.message})")
-    x = sol.y.T
+    x = _integrate(lambda _t, v: _l96(_t, v, forcing), ic, t_eval, system.name)
     x_dot = np.array([_l96(0.0, v, forcing) for v in x])
     return t_eval - t_eval[0], x, x_dot, system
 
@@ -172,14 +166,19 @@ def simulate_system(
         return system.rhs(v)[0]
 
     t_eval = burn + (dt * np.arange(n_samples) if times is None else np.asarray(times, float))
-    n_samples = t_eval.size
-    sol = scipy.integrate.solve_ivp(
-        rhs, (0.0, t_eval[-1]), system.ic, method="DOP853", t_eval=t_eval, rtol=1e-10, atol=1e-10
-    )
-    if not sol.success or sol.y.shape[1] != n_samples or not np.all(np.isfinite(sol.y)):
-        raise RuntimeError(f"{system.name}: integration failed ({sol.message})")
-    x = sol.y.T
+    x = _integrate(rhs, system.ic, t_eval, system.name)
     return t_eval - t_eval[0], x, system.rhs(x)
+
+
+def _integrate(rhs, ic, t_eval, name: str) -> np.ndarray:
+    """States (len(t_eval), n) of ``v' = rhs(t, v)`` from ``ic`` at time 0, at the
+    increasing times ``t_eval`` (DOP853, tolerances 1e-10), checked."""
+    sol = scipy.integrate.solve_ivp(
+        rhs, (0.0, t_eval[-1]), ic, method="DOP853", t_eval=t_eval, rtol=1e-10, atol=1e-10
+    )
+    if not sol.success or sol.y.shape[1] != t_eval.size or not np.all(np.isfinite(sol.y)):
+        raise RuntimeError(f"{name}: integration failed ({sol.message})")
+    return sol.y.T
 
 
 def write_rows(rows: list[dict], path) -> None:

@@ -15,12 +15,12 @@ whether each found exactly the true support and, with ``--memory``, the peak mem
 from __future__ import annotations
 
 import argparse
-import csv
 import sys
 from dataclasses import asdict
 from pathlib import Path
 
 from robust_sindy import zoo
+from robust_sindy.flows import write_rows
 
 
 def main(argv=None) -> None:
@@ -36,11 +36,7 @@ def main(argv=None) -> None:
     rows = zoo.run_scaling(sizes, families=args.families.split(","), seed=args.seed,
                            memory=args.memory)  # fmt: skip
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    with open(out / "scaling.csv", "w", newline="") as fh:
-        writer = csv.DictWriter(fh, fieldnames=list(asdict(rows[0])))
-        writer.writeheader()
-        writer.writerows(asdict(r) for r in rows)
+    write_rows([asdict(r) for r in rows], out / "scaling.csv")
     command = "python validation/scaling.py " + " ".join(argv or sys.argv[1:])
     text = (
         "# Many states: Lorenz-96, whole identifications\n\n"

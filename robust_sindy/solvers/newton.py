@@ -215,26 +215,39 @@ def inlier_gram(A, G: np.ndarray, w: np.ndarray, idx=None, sizes=None) -> np.nda
     cancellation when most of the Gram matrix sits in the down-weighted rows, and
     weights as small as 1e-300 keep their value).
     """
-    m, p = A.shape
     k_all = w.shape[1]
     if idx is None:
-        idx, sizes = np.tile(np.arange(p), (k_all, 1)), np.full(k_all, p)
+        idx, sizes = _every_term(k_all, A.shape[1])
     s = idx.shape[1]
     M = np.zeros((k_all, s, s))
     for k in range(k_all):  # one BLAS product per target column
         J = idx[k, : sizes[k]]
-        down = np.flatnonzero(w[:, k] < 1.0)
-        if 2 * down.size <= m:
-            AJ = _block(A, down, J)
-            Mk = G[np.ix_(J, J)] - (AJ * (1.0 - w[down, k, None])).T @ AJ
-            ratio = np.diag(Mk) / np.maximum(np.diag(G)[J], np.finfo(float).tiny)
-            if np.min(ratio, initial=1.0) > 1.0 - DIRECT_GRAM:
-                M[k, : J.size, : J.size] = Mk
-                continue
-        keep = np.flatnonzero(w[:, k] > 0.0)
-        AJ = _block(A, keep, J)
-        M[k, : J.size, : J.size] = (AJ * w[keep, k, None]).T @ AJ
+        M[k, : J.size, : J.size] = _weighted_gram(A, G, w[:, k], J, J.size)
     return M
+
+
+def _every_term(k: int, p: int):
+    """``idx`` and ``sizes`` of :func:`inlier_gram` for ``k`` columns on all ``p`` terms."""
+    return np.tile(np.arange(p), (k, 1)), np.full(k, p)
+
+
+def _weighted_gram(A, G, w, R, tail: int) -> np.ndarray:
+    """``A_R^T diag(w) A_N`` for the row weights ``w`` (m,) in ``[0, 1]`` and the last
+    ``tail`` terms ``N`` of ``R``: ``G_RN`` minus the rows with ``w < 1`` while those are
+    few and carry little of the norms of ``N``'s columns, else from the rows with
+    ``w > 0`` directly (see :func:`inlier_gram`)."""
+    first = R.size - tail
+    N = R[first:]
+    down = np.flatnonzero(w < 1.0)
+    if 2 * down.size <= A.shape[0]:
+        AR = _block(A, down, R)
+        B = G[np.ix_(R, N)] - (AR * (1.0 - w[down, None])).T @ AR[:, first:]
+        ratio = np.diag(B[first:]) / np.maximum(np.diag(G)[N], np.finfo(float).tiny)
+        if np.min(ratio, initial=1.0) > 1.0 - DIRECT_GRAM:
+            return B
+    keep = np.flatnonzero(w > 0.0)
+    AR = _block(A, keep, R)
+    return (AR * w[keep, None]).T @ AR[:, first:]
 
 
 class GramCache:
@@ -260,7 +273,7 @@ class GramCache:
         m, p = A.shape
         k_all = inlier.shape[1]
         if idx is None:
-            idx, sizes = np.tile(np.arange(p), (k_all, 1)), np.full(k_all, p)
+            idx, sizes = _every_term(k_all, p)
         s = idx.shape[1]
         M = np.zeros((k_all, s, s))
         fresh = []
@@ -304,20 +317,9 @@ class GramCache:
 def _border(A, G, inlier, J0, M0, drift, new):
     """The inlier Gram matrix ``M0`` on ``J0`` bordered with the terms ``new``: their
     rows and columns formed as :func:`inlier_gram` forms a matrix afresh."""
-    m = A.shape[0]
     Jx = np.concatenate([J0, new])
     k0 = J0.size
-    out = np.flatnonzero(~inlier)
-    B = None
-    if 2 * out.size <= m:
-        AO = _block(A, out, Jx)
-        B = G[np.ix_(Jx, new)] - AO.T @ AO[:, k0:]
-        ratio = np.diag(B[k0:]) / np.maximum(np.diag(G)[new], np.finfo(float).tiny)
-        if np.min(ratio, initial=1.0) <= 1.0 - DIRECT_GRAM:
-            B = None
-    if B is None:
-        AI = _block(A, np.flatnonzero(inlier), Jx)
-        B = AI.T @ AI[:, k0:]
+    B = _weighted_gram(A, G, inlier.astype(float), Jx, new.size)
     Mx = np.empty((Jx.size, Jx.size))
     Mx[:k0, :k0] = M0
     Mx[:, k0:] = B
