@@ -10,6 +10,7 @@ reference; least-squares baselines
 """
 
 from . import (
+    constraints,
     datasets,
     export,
     library,
@@ -23,6 +24,7 @@ from . import (
 )
 from ._version import __version__
 from .core.certificates import duality_gap, kkt_violation, objective
+from .core.constraints import LinearConstraints
 from .core.losses import huber, huber_prox, huber_psi, soft_threshold
 from .diagnostics import Diagnostics, IdentificationWarning
 from .ensemble import EnsembleSINDy
@@ -44,8 +46,10 @@ __all__ = [
     "FourierLibrary",
     "HuberSINDy",
     "IdentificationWarning",
+    "LinearConstraints",
     "PolynomialLibrary",
     "__version__",
+    "constraints",
     "datasets",
     "differentiation",
     "duality_gap",

@@ -244,6 +244,7 @@ def _fit(args, parser) -> int:
             delta=args.delta,
             lam=args.lam,
             formulation=args.formulation,
+            constraints=args.constraints,
             progress=_progress(args),
         )
     except fit_command.InputError as exc:
@@ -354,6 +355,13 @@ def main(argv: list[str] | None = None) -> int:
         default="auto",
         help="rows of the regression: samples with derivatives (strong), integrals "
         "against test functions (weak), or chosen from the data (auto, the default)",
+    )
+    fit.add_argument(
+        "--constraints",
+        choices=("energy_preserving",),
+        default=None,
+        help="refit the selected terms under linear constraints across equations: "
+        "energy_preserving (the quadratic terms conserve |x|^2)",
     )
     fit.add_argument(
         "--out", type=_folder, default="fit_results", help="output folder (./fit_results)"

@@ -126,6 +126,12 @@ class Diagnostics:
         or above ``MAX_LIBRARY_NOISE`` the noise in the library columns themselves
         (errors in the variables, which no loss on the derivatives can remove) is large
         enough to select spurious terms or bias the coefficients.
+    support_noise : ndarray (n,)
+        The same for each equation's selected terms only (NaN for an empty equation):
+        above ``MAX_LIBRARY_NOISE`` a warning says that the selected terms cannot be
+        told apart.  The whole library's weakest direction is noisy in most large
+        libraries with noisy states; whether that cost a term is what ``below_floor``,
+        ``bias_ratio`` and ``pruned`` report.
     noise_factor : ndarray (n,)
         Of the states' noise variance that the temporal screen measured, the share each
         equation's residuals allow, capped at 1
@@ -161,14 +167,44 @@ class Diagnostics:
         a real term dropped for want of margin, and a warning says so.
     below_floor : ndarray (n, p)
         Unselected terms whose relative contribution, were they added, lies between
-        ``selection_tol`` and the noise floor ``selection_tol_`` that the library noise
-        raised it to: the floor, not the data, left them out, so they may be real (a
-        warning says so); NaN for every other term.
+        ``selection_tol`` (and the noise of the term's own column) and the noise floor
+        ``selection_tol_`` that the noisiest column raised it to: the floor, not the
+        data, left them out, so they may be real (a warning says so); NaN for every
+        other term.
     bic_margin : ndarray (n,)
         Per equation, how much higher the BIC of the best other candidate support
         scored than the chosen one (``Selection.margin``); ``inf`` when there is no
         other, NaN with a fixed ``lam`` or ``criterion="cv"``.  Below
         ``MIN_BIC_MARGIN`` the data do not strongly prefer the chosen support.
+    selected_terms : ndarray of int (n,)
+        Terms selected per equation; an equation without any is warned about.
+    constraint_residual : float
+        With ``constraints``, their largest relative residual at the coefficients (NaN
+        without); a warning says so above 1e-8, or when the constrained refit was not
+        certified (``constraints_certified``).
+    constraints_certified : bool
+    energy_residual : float
+        For a model of degree at most 2 in the states (polynomial library, no control
+        in a selected term), the largest cubic coefficient of ``x^T Q(x)`` over the
+        largest quadratic one (0: the quadratic part conserves energy); NaN otherwise
+        (:mod:`robust_sindy.selection.stability`).
+    trapping_eigenvalue : float
+        For an energy-preserving quadratic part, the smallest over the centres ``m`` of
+        the largest eigenvalue of ``sym(L + J_Q(m))``: negative certifies a trapping
+        region (every trajectory of the model stays bounded; Schlegel & Noack 2015),
+        otherwise this test cannot decide; NaN where it does not apply.
+    pilot_relative_scale : ndarray (n,)
+        The row screen's robust residual scale of the unpenalised fit of the whole
+        library over the root mean square of each equation's target (NaN without the
+        screen): how much of the target no combination of the terms explains.
+    rival_margin : ndarray (n,)
+        The same over the candidates that are another model: they leave out a chosen
+        term, or change a chosen coefficient by more than half
+        (``Selection.rival_margin``).  Below ``MIN_BIC_MARGIN`` a warning says that the
+        data do not strongly prefer the chosen model.  A close candidate that only adds
+        a term to the chosen ones, which keep their values, is not warned about on its
+        own: whether terms are missing is what ``below_floor``, ``bias_ratio`` and
+        ``pruned`` report.
     subset_size : ndarray of int (n,)
         Besides the ``lam`` path's, the criterion compares the best supports of every
         size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
@@ -271,6 +307,14 @@ class Diagnostics:
     missing_controls: int = 0
     missing_derivative_samples: int = 0
     temporal_flagged_left_out: int = 0
+    support_noise: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rival_margin: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    pilot_relative_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    selected_terms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
+    constraint_residual: float = float("nan")
+    constraints_certified: bool = True
+    energy_residual: float = float("nan")
+    trapping_eigenvalue: float = float("nan")
 
     @property
     def weak(self) -> np.ndarray:
@@ -283,9 +327,20 @@ class Diagnostics:
         return [message for _, message in self.findings()]
 
     def findings(self) -> list[tuple[str, str]]:
-        """``(kind, sentence)`` for each rule of :data:`RULES` that applies."""
+        """``(kind, sentence)`` for each rule of :data:`RULES` that applies and warns."""
+        return self._apply(warns=True)
+
+    def notes(self) -> list[tuple[str, str]]:
+        """``(kind, sentence)`` for each rule of :data:`RULES` that applies and only
+        informs (what the noise decided on most answers from noisy states, right ones
+        included: reported, not warned)."""
+        return self._apply(warns=False)
+
+    def _apply(self, warns: bool) -> list[tuple[str, str]]:
         out = []
         for rule in RULES:
+            if rule.warns != warns:
+                continue
             evidence = rule.condition(self)
             if evidence is not None and evidence is not False:
                 out.append((rule.kind, rule.message(self, evidence)))
@@ -304,7 +359,9 @@ class Diagnostics:
             f"  left out in all: {100 * self.flagged_fraction:.1f} %",
             f"  certified: {self.certified.tolist()}",
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
-            f"  library noise along its weakest direction: {self.library_noise:.2g}",
+            f"  library noise along its weakest direction: {self.library_noise:.2g}; "
+            "along the selected terms' per equation: "
+            + np.array2string(self.support_noise, formatter={"float_kind": "{:.2g}".format}),
             "  share of the measured state noise the residuals allow: "
             + np.array2string(self.noise_factor, formatter={"float_kind": "{:.2g}".format}),
             f"  unstable terms per equation: {self.unstable.sum(axis=1).tolist()}",
@@ -314,7 +371,8 @@ class Diagnostics:
             f"{np.isfinite(self.truncation_ratio).sum(axis=1).tolist()}",
             "  terms left out below the noise floor per equation: "
             f"{np.isfinite(self.below_floor).sum(axis=1).tolist()}",
-            f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}",
+            f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}"
+            "; to the next other model: " + np.array2string(self.rival_margin, precision=3),
             f"  supports searched exhaustively up to size: {self.subset_size.tolist()}"
             + (
                 " (chosen from that search: equations "
@@ -350,8 +408,30 @@ class Diagnostics:
                 else "measured (or another differentiation)"
             ),
         ]
+        if np.isfinite(self.energy_residual):
+            lines.append(
+                "  quadratic part: "
+                + (
+                    "energy-preserving; "
+                    + (
+                        "bounded (trapping region: largest eigenvalue "
+                        f"{self.trapping_eigenvalue:.3g} < 0)"
+                        if self.trapping_eigenvalue < 0
+                        else "the trapping-region test cannot decide (largest eigenvalue "
+                        f"{self.trapping_eigenvalue:.3g})"
+                    )
+                    if self.energy_residual <= 1e-8
+                    else f"not energy-preserving (relative residual {self.energy_residual:.2g})"
+                )
+            )
+        if np.isfinite(self.constraint_residual):
+            lines.append(
+                f"  constraints: relative residual {self.constraint_residual:.1e}, refit "
+                + ("certified" if self.constraints_certified else "not certified")
+            )
         problems = self.problems()
         lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
+        lines += [f"  note: {message}" for _, message in self.notes()]
         return "\n".join(lines)
 
 
@@ -375,11 +455,13 @@ def _smallest(values: np.ndarray) -> np.ndarray:
 class Rule:
     """A reason to doubt a model: ``condition(diagnostics)`` returns the evidence (None
     or False when the rule does not apply) and ``message(diagnostics, evidence)`` the
-    sentence that says so."""
+    sentence that says so; ``warns`` False for a rule that only informs (a note of the
+    report, not a warning)."""
 
     kind: str
     condition: Callable
     message: Callable
+    warns: bool = True
 
 
 def _outliers(d) -> float:
@@ -520,6 +602,32 @@ RULES: tuple[Rule, ...] = (
         ),
     ),
     Rule(
+        "constraints not met",
+        lambda d: (not d.constraints_certified) or d.constraint_residual > 1e-8,
+        lambda d, _: (
+            f"the constrained refit was {'' if d.constraints_certified else 'not '}"
+            f"certified and the constraints' relative residual is {d.constraint_residual:.1e}"
+            ": check that the constraints can be met by the selected terms and those tied "
+            "to them (see result_ and robust_sindy.selection.constrained)"
+        ),
+    ),
+    Rule(
+        "empty equations",
+        lambda d: np.flatnonzero(d.selected_terms == 0).tolist() or None,
+        lambda d, empty: (
+            f"equations {empty} have no term: the data vouch for no library term in them"
+            + (
+                " (an unpenalised fit of the whole library leaves "
+                + ", ".join(f"{100 * v:.0f} %" for v in d.pilot_relative_scale[empty])
+                + " of their root mean square)"
+                if np.isfinite(d.pilot_relative_scale[empty]).all()
+                else ""
+            )
+            + ": the library does not describe these states' motion, or the noise hides "
+            "it. Use less noisy states, more data, measured derivatives or another library"
+        ),
+    ),
+    Rule(
         "collinear terms",
         lambda d: np.flatnonzero(d.condition_number > MAX_CONDITION).tolist() or None,
         lambda d, bad: (
@@ -532,14 +640,18 @@ RULES: tuple[Rule, ...] = (
     ),
     Rule(
         "noisy library",
-        lambda d: d.library_noise > MAX_LIBRARY_NOISE,
-        lambda d, _: (
-            f"the noise of the states, carried through the library, is "
-            f"{100 * d.library_noise:.0f} % of the library's signal along its "
-            "least-excited direction: terms that differ along it cannot be told apart "
-            "(errors in the variables, which measured derivatives do not remove), so "
-            "the support and coefficients may be wrong. Use less noisy states, a longer "
-            "or more exciting trajectory, or a smaller library"
+        lambda d: (
+            np.flatnonzero(np.nan_to_num(d.support_noise) > MAX_LIBRARY_NOISE).tolist() or None
+        ),
+        lambda d, bad: (
+            f"equations {bad}: the noise of the states, carried through the selected "
+            "terms, is "
+            + ", ".join(f"{100 * v:.0f} %" for v in d.support_noise[bad])
+            + " of their signal along their least-excited direction: terms that differ "
+            "along it cannot be told apart (errors in the variables, which measured "
+            "derivatives do not remove), so the support and coefficients may be wrong. "
+            "Use less noisy states, a longer or more exciting trajectory, or a smaller "
+            "library"
         ),
     ),
     Rule(
@@ -578,6 +690,7 @@ RULES: tuple[Rule, ...] = (
             "real (see diagnostics_.below_floor); less noisy states or a smaller "
             "library would decide"
         ),
+        warns=False,
     ),
     Rule("weak terms", lambda d: _equations_with(d.weak), _weak_message),
     Rule(
@@ -587,11 +700,12 @@ RULES: tuple[Rule, ...] = (
     ),
     Rule(
         "close runner-up",
-        lambda d: np.flatnonzero(d.bic_margin < MIN_BIC_MARGIN).tolist() or None,
+        lambda d: np.flatnonzero(d.rival_margin < MIN_BIC_MARGIN).tolist() or None,
         lambda d, close: (
-            f"equations {close}: another support scored within {MIN_BIC_MARGIN:g} of the "
-            "chosen one's BIC (differences "
-            + ", ".join(f"{v:.1f}" for v in d.bic_margin[close])
+            f"equations {close}: another model (without some of the chosen terms, or "
+            "with one of their coefficients changed by more than half) scored within "
+            f"{MIN_BIC_MARGIN:g} of the chosen one's BIC (differences "
+            + ", ".join(f"{v:.1f}" for v in d.rival_margin[close])
             + "): the data do not strongly prefer the selected terms; compare the "
             "candidates (selection_.candidates and selection_.scores on the path, "
             "selection_.subsets and selection_.subset_scores), and try more data or "
@@ -683,6 +797,8 @@ def diagnose(
     covered=None,
     formulation: str = "",
     missing=None,
+    constrained=None,
+    bounded=None,
 ) -> Diagnostics:
     """The diagnostics of a fit from its stages' outcomes: the kept problem
     (:class:`~robust_sindy.selection.problem.Problem`), the noise floor, the choice of
@@ -707,19 +823,26 @@ def diagnose(
     standard = scaler.coef_to_standard(coef)
     noise_factor = np.full(n, np.nan)
     allowed = floor.library_noise[1]
+    support_noise = np.full(n, np.nan)
     if selection is not None and noise is not None:
         for k in range(n):
             c = standard[:, k]
             noise_factor[k] = residual_noise_factor(yk[:, k] - th @ c, carried_noise(noise, c))
         state = state_noise_factors(noise, standard, noise_factor)
         if np.any(state < 1):
-            reduced = [np.sqrt(f) * a for f, a in zip(state, noise, strict=True)]
-            allowed = library_noise(reduced, th)[1]
+            noise = [np.sqrt(f) * a for f, a in zip(state, noise, strict=True)]
+            allowed = library_noise(noise, th)[1]
+        for k in range(n):
+            s = coef[:, k] != 0
+            if s.any():
+                support_noise[k] = library_noise([a[:, s] for a in noise], th[:, s])[1]
     below = np.full(coef.shape, np.nan)
     if selection is not None and floor.selection_tol > selection_tol:
-        # Terms left out that the raised noise floor, not the data, decided about.
+        # Terms left out that the raised noise floor, not the data, decided about: above
+        # their own column's noise (below it the data cannot tell them from it either).
         contrib = one_step_contributions(th, yk, standard, delta_s)
-        inside = (contrib >= selection_tol) & (contrib < floor.selection_tol)
+        own = np.nan_to_num(floor.library_noise[0], nan=0.0)[:, None]
+        inside = (contrib >= np.maximum(selection_tol, own)) & (contrib < floor.selection_tol)
         below[inside] = contrib[inside]
     tstat = np.full(coef.shape, np.nan)
     if selection is not None:
@@ -749,6 +872,15 @@ def diagnose(
         certified=np.asarray(fitted.result.column_converged, dtype=bool),
         condition_number=_condition_numbers(kept.theta_s, coef_t),
         library_noise=allowed,
+        support_noise=support_noise,
+        selected_terms=np.count_nonzero(coef, axis=0),
+        constraint_residual=float("nan") if constrained is None else constrained.residual,
+        constraints_certified=True if constrained is None else constrained.converged,
+        energy_residual=float("nan") if bounded is None else bounded.energy_residual,
+        trapping_eigenvalue=float("nan") if bounded is None else bounded.trapping_eigenvalue,
+        pilot_relative_scale=(
+            np.full(n, np.nan) if screening is None else screening.relative_scale.copy()
+        ),
         noise_factor=noise_factor,
         unstable=stability(kept.theta_s, kept.y_s, standard, delta_s, method),
         bias_ratio=np.ascontiguousarray(final.bias_ratio.T),
@@ -756,6 +888,11 @@ def diagnose(
         below_floor=np.ascontiguousarray(below.T),
         bic_margin=(
             selection.margin.copy()
+            if selection is not None and selection.criterion == "bic"
+            else np.full(n, np.nan)
+        ),
+        rival_margin=(
+            selection.rival_margin.copy()
             if selection is not None and selection.criterion == "bic"
             else np.full(n, np.nan)
         ),

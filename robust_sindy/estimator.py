@@ -26,7 +26,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from numbers import Integral, Real
 
 import numpy as np
@@ -35,6 +35,7 @@ from sklearn.exceptions import NotFittedError
 
 from . import io, outofcore
 from .core.blas import one_thread
+from .core.constraints import LinearConstraints
 from .core.scaling import Standardizer
 from .core.validation import as_float_array
 from .diagnostics import Diagnostics, IdentificationWarning, diagnose, warn
@@ -50,10 +51,12 @@ from .selection.choice import (
     huber_method,
     noise_floor,
 )
+from .selection.constrained import build_constraints, constrained_refit
 from .selection.criteria import CRITERIA
 from .selection.final import FinalSelection, final_selection
 from .selection.problem import Problem
 from .selection.rows import RowScreen, screen_samples
+from .selection.stability import boundedness, quadratic_parts
 from .simulate import integrate, simulation_inputs
 from .timeseries.derivatives import (
     DERIVATIVE_WINDOWS,
@@ -180,6 +183,14 @@ class HuberSINDy(BaseEstimator):
         weak form where no ``x_dot`` is given, unless the temporal screen flagged more
         entries than Gaussian noise would (outliers: ``OUTLIER_EVIDENCE``) or the records
         are too short for it (``diagnostics_.formulation_reason`` says which and why).
+    constraints : None, "energy_preserving", LinearConstraints or callable
+        Linear constraints on the coefficients across equations
+        (:mod:`robust_sindy.constraints`; a callable gets the library's feature names
+        and the states' names and returns a
+        :class:`~robust_sindy.LinearConstraints`).  The terms are selected as without
+        them, then the selected terms and those a constraint ties to them are refitted
+        under the constraints (:mod:`robust_sindy.selection.constrained`);
+        ``diagnostics_.constraint_residual`` reports how well they are met.
 
     Attributes
     ----------
@@ -266,6 +277,7 @@ class HuberSINDy(BaseEstimator):
         progress: bool = False,
         derivative_window="auto",
         formulation="auto",
+        constraints=None,
     ):
         self.library = library
         self.delta = delta
@@ -283,6 +295,7 @@ class HuberSINDy(BaseEstimator):
         self.progress = progress
         self.derivative_window = derivative_window
         self.formulation = formulation
+        self.constraints = constraints
 
     # ------------------------------------------------------------------ fitting
     def fit(self, x, t=None, x_dot=None, u=None, feature_names=None) -> HuberSINDy:
@@ -349,6 +362,20 @@ class HuberSINDy(BaseEstimator):
         weak, why = (
             self._weak_rows(data, temporal, library, z, missing) if allow_weak else (None, "")
         )
+        alternative = None
+        if weak is None and outlying.any():
+            # A glitch need not cost its sample: the row of its repaired readings is the
+            # row screen's second choice for a sample it would leave out, where most of
+            # the sample's readings were not flagged (a sample most of whose readings are
+            # off is a corrupted row, whose unflagged readings are suspect too).
+            hit = outlying.sum(axis=1)
+            at = np.flatnonzero((hit > 0) & (2 * hit <= data.n_states))
+            if at.size:
+                repaired = z[at].copy()
+                repaired[:, : data.n_states] = np.where(
+                    outlying[at], temporal.repaired[at], repaired[:, : data.n_states]
+                )
+                alternative = (at, library.transform(repaired))
         if weak is None:
             deriv = derivatives(
                 data, temporal, self.differentiation, self.derivative_window, self.screen, theta
@@ -372,8 +399,12 @@ class HuberSINDy(BaseEstimator):
         absent = missing.derivative_rows if weak is None else np.zeros(problem.shape[0], bool)
         rows = screen_samples(
             problem, row_flags, deriv.unresolved | absent, measured=deriv.measured,
-            method=pilot, screen=self.screen,
+            method=pilot, screen=self.screen, alternative=alternative,
         )  # fmt: skip
+        swapped = None if rows.screening is None else rows.screening.swapped
+        if swapped is not None and swapped.any():
+            theta[swapped] = alternative[1][np.isin(alternative[0], np.flatnonzero(swapped))]
+            problem = Problem(theta, deriv.y, scaler, segments, noise)
         if absent.any():
             rows = RowScreen(rows.keep & ~absent, rows.screening)
         kept = problem.keep(rows.keep)
@@ -399,12 +430,23 @@ class HuberSINDy(BaseEstimator):
         else:
             nan = np.full(fitted.coef.shape, np.nan)
             final = FinalSelection(fitted.coef, nan, nan.copy(), nan.copy())
+        refit = None
+        if self.constraints is not None:
+            con = build_constraints(
+                self.constraints, library.get_feature_names(), names[: data.n_states],
+                final.coef.shape,
+            )  # fmt: skip
+            refit = constrained_refit(
+                kept, final.coef, fitted.result.delta, con, method=self.method, solver=self.solver
+            )
+            final = replace(final, coef=refit.coef)
         covered = None if weak is None else weak.covered(rows.keep)
         report = diagnose(
             kept=kept, floor=floor, choice=choice, fitted=fitted, final=final, rows=rows,
             entry_flags=outlying, row_flags=row_flags, deriv=deriv, missing=missing,
             feature_names=library.get_feature_names(), selection_tol=self.selection_tol,
-            method=pilot, weak=weak, covered=covered, formulation=why,
+            method=pilot, weak=weak, covered=covered, formulation=why, constrained=refit,
+            bounded=_boundedness(library, final.coef, data.n_states),
         )  # fmt: skip
         return Identification(
             data, library, theta, temporal, deriv, problem, rows, floor, choice, fitted, final,
@@ -510,6 +552,11 @@ class HuberSINDy(BaseEstimator):
         """Dask arrays: the model is chosen on a sample in memory
         (:func:`robust_sindy.outofcore.sample`, all the stages of a fit), then refitted on
         every sample out of core (:func:`robust_sindy.outofcore.refit`)."""
+        if self.constraints is not None:
+            raise ValueError(
+                "constraints are fitted in memory only: pass NumPy arrays (or a sample of "
+                "the data) with constraints"
+            )
         if self.formulation == "weak":
             raise ValueError(
                 "formulation='weak' is fitted in memory only: the out-of-core refit "
@@ -572,6 +619,17 @@ class HuberSINDy(BaseEstimator):
             )
         if self.solver_options is not None and not isinstance(self.solver_options, dict):
             raise ValueError(f"solver_options must be a dict or None; got {self.solver_options!r}")
+        cons = self.constraints
+        if not (
+            cons is None
+            or cons == "energy_preserving"
+            or isinstance(cons, LinearConstraints)
+            or (callable(cons) and not isinstance(cons, str))
+        ):
+            raise ValueError(
+                "constraints must be None, 'energy_preserving', a LinearConstraints or a "
+                f"callable returning one; got {cons!r}"
+            )
         n_lams = self.n_lams
         if isinstance(n_lams, bool) or not isinstance(n_lams, Integral) or n_lams < 2:
             raise ValueError(f"n_lams must be an integer >= 2; got {n_lams!r}")
@@ -751,6 +809,16 @@ class HuberSINDy(BaseEstimator):
 
             return pd.DataFrame(out, index=pd.Index(t[: len(out)], name="t"), columns=f.state_names)
         return out
+
+
+def _boundedness(library, coef, n_states: int):
+    """Energy preservation and the trapping-region test of a model of degree at most 2
+    in the states (:mod:`robust_sindy.selection.stability`), or None."""
+    powers = getattr(library, "powers_", None)
+    if powers is None:
+        return None
+    parts = quadratic_parts(np.asarray(coef).T, powers, n_states)
+    return None if parts is None else boundedness(*parts)
 
 
 def load_model(path) -> HuberSINDy:

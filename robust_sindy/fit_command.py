@@ -286,6 +286,7 @@ def run(
     delta="auto",
     lam="auto",
     formulation="auto",
+    constraints=None,
     progress=True,
     echo=print,
 ) -> list[Path]:
@@ -312,6 +313,7 @@ def run(
         differentiation=job.differentiation,
         progress=progress,
         formulation=formulation,
+        constraints=constraints,
     )
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")

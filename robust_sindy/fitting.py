@@ -178,6 +178,7 @@ def fit(
     lam=1.0,
     loss: str = "huber",
     solver: str | None = None,
+    constraints=None,
     **options,
 ) -> FitResult:
     """Fit the sparse coefficient matrix of ``xdot ~ theta @ coef`` column by column.
@@ -213,6 +214,19 @@ def fit(
     loss : {"huber", "squared"}
     solver : {"clarabel", "osqp"}, optional
         Only for ``method="cvxpy"`` (default ``"clarabel"``).
+    constraints : LinearConstraints, optional
+        Linear equalities and inequalities on the whole coefficient matrix
+        (:class:`robust_sindy.core.constraints.LinearConstraints`, built by the helpers of
+        :mod:`robust_sindy.constraints`).  The columns are then one problem, solved by
+        ``method="admm"`` (ADMM on all equations at once, then a polish: the fast path)
+        or ``method="cvxpy"`` (the reference), and certified by the constrained KKT
+        conditions (:func:`robust_sindy.core.constraints.constrained_certificate`):
+        ``kkt`` is each equation's stationarity violation with the multipliers,
+        ``certificate_kkt`` the largest of it and the constraints' relative residual,
+        ``gap`` the problem's duality gap (the same in every column), and ``info``
+        holds ``constraint_residual``, the multipliers ``nu`` and ``mu`` and the
+        solver's own status.  ADMM options: ``rho, alpha, max_iter, eps, tol,
+        check_every, polish``.
     **options
         Solver options.  ADMM: ``rho, kappa, alpha, equilibrate, adaptive_rho, polish,
         max_iter, eps_abs, eps_rel, tol, gap_tol, check_every, newton_steps,
@@ -252,6 +266,8 @@ def fit(
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {METHODS}; got {method!r}")
+    if constraints is not None:
+        return _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints, options)
     if chunked.is_dask(theta) or chunked.is_dask(xdot):
         return _fit_dask(theta, xdot, method, delta, lam, loss, solver, options)
     theta, y, one_d = check_problem(theta, xdot)
@@ -561,3 +577,104 @@ def check_huber_method(method: str, what: str) -> str:
     if method not in ("admm", "cvxpy"):
         raise ValueError(f"method must be 'admm' or 'cvxpy' for {what}; got {method!r}")
     return method
+
+
+def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints, options):
+    """:func:`fit` with ``constraints``: one problem over every column."""
+    from .core.constraints import LinearConstraints, constrained_certificate
+    from .solvers import constrained
+
+    if not isinstance(constraints, LinearConstraints):
+        raise ValueError(
+            "constraints must be a LinearConstraints (see robust_sindy.constraints); "
+            f"got {type(constraints).__name__}"
+        )
+    if method not in ("admm", "cvxpy"):
+        raise ValueError(f"constraints apply to method='admm' or 'cvxpy'; got {method!r}")
+    if chunked.is_dask(theta) or chunked.is_dask(xdot):
+        raise ValueError("constraints are fitted in memory: pass NumPy arrays")
+    theta, y, one_d = check_problem(theta, xdot)
+    n, p = y.shape[1], theta.shape[1]
+    constraints.check_shape(p, n)
+    if isinstance(delta, str) and delta == "auto":
+        if loss != "huber":
+            raise ValueError("delta='auto' applies to loss='huber' only")
+        delta = np.atleast_1d(auto_delta(theta, y))
+    delta_k = loss_delta(loss, delta, n)
+    lam_k = check_lam(lam, p, n, one_d)
+    lam_full = np.broadcast_to(lam_k if lam_k.ndim == 2 else lam_k[None, :], (p, n))
+    if method != "cvxpy" and solver is not None:
+        raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
+    t0 = time.perf_counter()
+    if method == "cvxpy":
+        solver_name = "clarabel" if solver is None else solver
+        if solver_name not in reference.SOLVERS:
+            raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
+        tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
+        reference.check_options(solver_name, options)
+        out = constrained.solve_constrained_cvxpy(
+            theta, y, delta_k, lam_full, constraints, solver=solver_name, **options
+        )
+    else:
+        known = {"rho", "alpha", "max_iter", "eps", "tol", "check_every", "polish"}
+        _reject_unknown(options, known, "admm with constraints")
+        tol = check_positive(options.get("tol", 1e-8), "tol")
+        out = constrained.solve_constrained_admm(
+            theta, y, delta_k, lam_full, constraints, **{**options, "tol": tol}
+        )
+        solver_name = "admm"
+    solve_time = time.perf_counter() - t0
+    cert = out.certificate
+    if cert is None:
+        cert = constrained_certificate(
+            theta, y, out.coef, delta_k, lam_full, constraints, nu=out.nu, mu=out.mu
+        )
+    converged = bool(cert.kkt <= tol)
+    if not converged:
+        warnings.warn(
+            f"{method} ({solver_name}) did not certify the constrained problem (relative "
+            f"stationarity {cert.stationarity:.1e}, constraint residual "
+            f"{cert.feasibility:.1e}, tol {tol:g}; {out.status}); returning the last "
+            "iterate. Try: "
+            + (
+                "a larger max_iter or another rho (e.g. 0.01 or 100), or method='cvxpy'"
+                if method == "admm"
+                else "the other solver, or check that the constraints can be met"
+            )
+            + ".",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
+    inliers = None
+    if loss == "huber":
+        inliers = np.abs(cert.residual) <= delta_k
+        if one_d:
+            inliers = inliers[:, 0]
+    column_ok = np.full(n, converged)
+    return FitResult(
+        coef=out.coef[:, 0].copy() if one_d else out.coef,
+        objective=cert.column_objective,
+        converged=converged,
+        column_converged=column_ok,
+        iterations=np.full(n, out.iterations),
+        kkt=cert.column_kkt,
+        gap=np.full(n, cert.gap),
+        solve_time=solve_time,
+        method=method,
+        solver=solver_name,
+        loss=loss,
+        delta=delta_k,
+        lam=lam_k,
+        inliers=inliers,
+        dual=cert.psi,
+        messages=[out.status],
+        info={
+            "constraint_residual": cert.feasibility,
+            "nu": cert.nu,
+            "mu": cert.mu,
+            "solver_status": out.status,
+            **out.info,
+        },
+        certificate="constrained huber-lasso KKT",
+        certificate_kkt=np.maximum(cert.column_kkt, cert.feasibility),
+    )

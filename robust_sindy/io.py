@@ -21,6 +21,7 @@ import numpy as np
 from sklearn.exceptions import NotFittedError
 
 from ._version import __version__
+from .core.constraints import LinearConstraints
 from .library import BaseLibrary, ConcatLibrary, CustomLibrary, FourierLibrary, PolynomialLibrary
 
 __all__ = ["FORMAT", "FORMAT_VERSION", "SavedModel", "read_model", "save_model"]
@@ -108,6 +109,24 @@ def _fields(obj) -> dict:
     return {f.name: _plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
 
 
+def _constraints(spec) -> dict | None:
+    """A :class:`~robust_sindy.LinearConstraints` (or what a callable built) as plain
+    values; None for none or a name (saved with the parameters)."""
+    if spec is None or isinstance(spec, str):
+        return None
+    if not isinstance(spec, LinearConstraints):
+        raise ValueError(
+            "a model whose constraints are a callable cannot be saved: pass the "
+            "LinearConstraints it returns as constraints"
+        )
+    return {
+        "n_terms": spec.n_terms, "n_equations": spec.n_equations,
+        "A_eq": _plain(spec.A_eq), "b_eq": _plain(spec.b_eq),
+        "A_ub": _plain(spec.A_ub), "b_ub": _plain(spec.b_ub),
+        "labels_eq": list(spec.labels_eq), "labels_ub": list(spec.labels_ub),
+    }  # fmt: skip
+
+
 def save_model(model, path) -> Path:
     """Write a fitted :class:`~robust_sindy.HuberSINDy` to ``path`` as JSON; returns the path."""
     if not hasattr(model, "coef_"):
@@ -132,6 +151,7 @@ def save_model(model, path) -> Path:
         "lam": _plain(model.lam_),
         "selection_tol": _plain(getattr(model, "selection_tol_", None)),
         "params": params,
+        "constraints": _constraints(model.get_params(deep=False).get("constraints")),
         "diagnostics": None
         if diagnostics is None
         else {
@@ -188,4 +208,14 @@ def read_model(path) -> SavedModel:
     }
     if data.get("selection_tol") is not None:
         fitted["selection_tol_"] = float(data["selection_tol"])
-    return SavedModel(data["params"], library_from_spec(spec), fitted)
+    params = dict(data["params"])
+    saved = data.get("constraints")
+    if saved is not None:
+        params["constraints"] = LinearConstraints(
+            int(saved["n_terms"]), int(saved["n_equations"]),
+            _array(saved["A_eq"]).reshape(-1, int(saved["n_terms"]) * int(saved["n_equations"])),
+            _array(saved["b_eq"]),
+            _array(saved["A_ub"]).reshape(-1, int(saved["n_terms"]) * int(saved["n_equations"])),
+            _array(saved["b_ub"]), tuple(saved["labels_eq"]), tuple(saved["labels_ub"]),
+        )  # fmt: skip
+    return SavedModel(params, library_from_spec(spec), fitted)

@@ -86,7 +86,8 @@ def test_heavy_tailed_state_noise_does_not_select_bias_terms(subsets, monkeypatc
     # Student-t noise (2 degrees of freedom) on every state, exact derivatives: the
     # noisy library biases the fit of (x)' towards x*z and y*z.  The lam path's
     # candidates carry those terms and the criterion keeps them, so the bias step
-    # drops them; a best-subset candidate without them scores better still.
+    # drops them; a best-subset candidate without them scores better still (the bias
+    # step may still drop a term of the path's candidates).
     import functools
 
     import robust_sindy.selection.choice
@@ -105,7 +106,7 @@ def test_heavy_tailed_state_noise_does_not_select_bias_terms(subsets, monkeypatc
     true = np.zeros((3, 10), dtype=bool)
     true[0, [1, 2]] = true[1, [1, 2, 6]] = true[2, [3, 5]] = True
     assert np.array_equal(model.support_, true)
-    assert model.bias_dropped_.any() != subsets
+    assert subsets or model.bias_dropped_.any()
     assert model.selection_.from_subsets.any() == subsets
     assert np.array_equal(np.isfinite(model.diagnostics_.bias_ratio), model.bias_dropped_)
     assert not (model.bias_dropped_ & model.support_).any()

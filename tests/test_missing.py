@@ -229,12 +229,13 @@ def _halvorsen(t):
     return x, np.array([f(0, v) for v in x])
 
 
-def test_glitched_entries_cost_their_samples_not_the_model():
+def test_glitched_entries_cost_their_entries_not_the_model():
     # 5 % of the entries glitched by 3 to 20 standard deviations, exact derivatives:
     # 14 % of the samples have a bad entry, and their library rows are far out.  The
-    # row screen leaves every one of them out, and the support is exact, on every seed
-    # (a pilot bent by them must not excuse its residuals by the local scale they
-    # raise).
+    # row screen leaves those rows out, then keeps nearly all of the samples with the
+    # library row of their repaired readings (none with a glitched reading left in),
+    # and the support is exact, on every seed (a pilot bent by the glitches must not
+    # excuse its residuals by the local scale they raise).
     t = 0.0118 * np.arange(2000)
     clean, x_dot = _halvorsen(t)
     s = clean.std(axis=0)
@@ -247,7 +248,10 @@ def test_glitched_entries_cost_their_samples_not_the_model():
         bad = np.zeros(x.shape, dtype=bool)
         bad[i, j] = True
         model = _fit(x, t, x_dot=x_dot)
-        assert not (bad.any(axis=1) & ~model.screened_).any(), seed
+        kept = bad.any(axis=1) & ~model.screened_
+        assert kept.sum() >= 0.9 * bad.any(axis=1).sum(), seed
+        assert np.all(model.screening_.swapped[kept]), seed
+        assert not (bad & ~model.temporal_.flags)[kept].any(), seed
         names = model.get_feature_names()
         found = [{names[j] for j in np.flatnonzero(row)} for row in model.support_]
         linear = {"x0", "x1", "x2"}

@@ -163,6 +163,36 @@ def test_noisy_states_in_a_large_library_warn_of_errors_in_the_variables():
     assert model.selection_tol_ > model.selection_tol
 
 
+def test_a_noisy_library_warns_only_where_the_selected_terms_are_noisy():
+    # 0.5 % noise on the states, degree-4 library, exact derivatives, four seeds: the
+    # library's weakest direction is noisy (errors in the variables can confuse terms
+    # along it).  Where the support is exact (most seeds) the selected terms are not
+    # noisy and no noisy library is warned of; a wrong support warns.  The left-out
+    # terms reported below the floor lie above their own column's noise.
+    import dataclasses
+
+    right = 0
+    for seed in range(4):
+        data, x = _lorenz_states(0.005, seed)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            model = HuberSINDy(library=PolynomialLibrary(degree=4)).fit(x, data.t, x_dot=data.x_dot)
+        d = model.diagnostics_
+        kinds = {getattr(c.message, "kind", "") for c in caught}
+        assert d.library_noise > 0.15, seed
+        if model.support_.sum(axis=1).tolist() == [2, 3, 2]:
+            right += 1
+            assert np.all(d.support_noise < 0.15) and "noisy library" not in kinds, seed
+        else:
+            assert kinds, seed
+        below = np.isfinite(d.below_floor)
+        own = np.broadcast_to(model.library_noise_[0], below.shape)
+        assert np.all(d.below_floor[below] >= own[below]), seed
+    assert right >= 3
+    noisy = dataclasses.replace(d, support_noise=np.array([0.1, 0.5, np.nan]))
+    assert any(k == "noisy library" and m.startswith("equations [1]") for k, m in noisy.findings())
+
+
 def test_terms_fitted_to_noise_are_reported_unstable():
     data = Lorenz().generate()
     rng = np.random.default_rng(1)

@@ -270,7 +270,8 @@ def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():
     # KawczynskiStrizhak, 800 samples, 2 % of the entries spiked by 3 to 5 times the
     # state's spread, measured derivatives (a held-out setting): the competing
     # iteration from every sample starts with a spiked sample far out in the cubic
-    # library and bends to fit it; judged by its deleted residual, it is left out.
+    # library and bends to fit it; judged by its deleted residual, it is left out, or
+    # kept with the library row of its repaired readings.
     from robust_sindy import zoo
 
     system = {s.name: s for s in zoo.polynomial_systems()}["KawczynskiStrizhak"]
@@ -281,7 +282,8 @@ def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         model = HuberSINDy(library=PolynomialLibrary(degree=3)).fit(noisy, t, x_dot=x_dot)
-    assert np.all(model.screened_[bad.any(axis=1)])
+    kept = bad.any(axis=1) & ~model.screened_
+    assert np.all(model.screening_.swapped[kept])
     assert np.array_equal(model.support_, system.coef.T != 0)
 
 
@@ -457,6 +459,13 @@ def test_score_margin_is_the_gap_to_the_best_other_support():
     assert np.allclose(score_margin(scores, cand, index), [0.5, 0.0])
     same = np.ones((3, 3, 1))
     assert np.isinf(score_margin(np.zeros((3, 1)), same, np.array([0])))[0]
+    # rivals only: column 0's supports {0} (10) and all (3.5, a superset of the chosen
+    # {0,1} with the same values) -> only {0} counts, 7.0; column 1: chosen {0}, every
+    # other adds terms -> inf
+    assert np.allclose(score_margin(scores, cand, index, rivals=True), [7.0, np.inf])
+    # a superset that changes a chosen coefficient by more than half is a rival
+    cand[3, 1, 0] = 2.0
+    assert np.allclose(score_margin(scores, cand, index, rivals=True), [0.5, np.inf])
 
 
 def test_a_close_runner_up_support_is_reported():
@@ -469,8 +478,12 @@ def test_a_close_runner_up_support_is_reported():
     d = model.diagnostics_
     assert np.all(d.bic_margin >= 6.0) and d.problems() == []
     assert np.allclose(d.bic_margin, model.selection_.margin)
-    (message,) = dataclasses.replace(d, bic_margin=np.array([40.0, 2.5, np.inf])).problems()
-    assert message.startswith("equations [1]: another support") and "2.5" in message
+    assert np.allclose(d.rival_margin, model.selection_.rival_margin)
+    assert np.all(d.rival_margin >= d.bic_margin)  # the best of fewer candidates
+    (message,) = dataclasses.replace(d, rival_margin=np.array([40.0, 2.5, np.inf])).problems()
+    assert message.startswith("equations [1]: another model") and "2.5" in message
+    # a close candidate that only adds terms is not warned about on its own
+    assert dataclasses.replace(d, bic_margin=np.array([40.0, 2.5, np.inf])).problems() == []
 
 
 def test_a_fast_excursion_the_temporal_screen_cannot_follow_is_kept():

@@ -108,6 +108,11 @@ class Selection:
         support).  For ``criterion="bic"`` it is a BIC difference: below about 6 the
         data do not strongly prefer the chosen support.  With ``criterion="bic"`` it
         counts the best-subset candidates too.
+    rival_margin : ndarray, shape (n,)
+        The same over the candidates that are another model: they leave out a chosen
+        term or change a chosen coefficient by more than half
+        (``score_margin(..., rivals=True)``): below about 6 the data do not strongly
+        prefer the chosen model.
     subsets : ndarray, shape (E, p, n)
         For ``criterion="bic"``, the selection stage's refit of the best few supports
         of every size up to ``subset_size`` (:func:`best_subsets`); empty otherwise.
@@ -134,6 +139,7 @@ class Selection:
     subset_scores: np.ndarray
     subset_size: np.ndarray
     from_subsets: np.ndarray
+    rival_margin: np.ndarray
 
     def __repr__(self) -> str:
         return (
@@ -249,19 +255,45 @@ def _loss_floor(a, y, weights, delta, residuals=None, basis=None) -> float:
     return float(y @ u - 0.5 * u @ u)
 
 
-def score_margin(scores, candidates, index) -> np.ndarray:
+#: A candidate that keeps every chosen term but changes one of their coefficients by
+#: more than this share (or its sign) is another model, not the chosen one plus a term.
+RIVAL_CHANGE = 0.5
+
+
+def _rival(candidate, chosen_coef) -> bool:
+    """Whether ``candidate`` (p,) leaves out a term of ``chosen_coef`` (p,) or changes
+    one of its coefficients by more than :data:`RIVAL_CHANGE` of it."""
+    on = chosen_coef != 0
+    if np.any(candidate[on] == 0):
+        return True
+    change = np.abs(candidate[on] - chosen_coef[on]) > RIVAL_CHANGE * np.abs(chosen_coef[on])
+    return bool(np.any(change))
+
+
+def score_margin(scores, candidates, index, rivals: bool = False) -> np.ndarray:
     """Per column, the score of the best candidate whose support differs from the
-    chosen one (``index``) minus the chosen score; ``inf`` when none differs.
+    chosen one (``index``) minus the chosen score; ``inf`` when none differs.  With
+    ``rivals``, only the candidates that are another model count: they leave out a
+    chosen term, or change a chosen coefficient by more than :data:`RIVAL_CHANGE` of
+    it.  A candidate that only adds terms to the chosen ones, which keep their values,
+    says whether terms may be missing (what the floor, bias and significance rules
+    report), not whether the chosen ones are right: with m rows, the best of the
+    spurious terms a right model leaves out gains about 2 log(p) in twice the
+    log-likelihood against a penalty of log m, so such candidates score close on most
+    right answers from noisy states.
 
     ``scores`` (L, n), ``candidates`` (L, p, n), ``index`` (n,).
     """
     L, _, n = candidates.shape
     out = np.full(n, np.inf)
     for k in range(n):
-        chosen = candidates[index[k], :, k] != 0
+        chosen_coef = candidates[index[k], :, k]
+        chosen = chosen_coef != 0
         other = [
             i for i in range(L)
-            if np.isfinite(scores[i, k]) and not np.array_equal(candidates[i, :, k] != 0, chosen)
+            if np.isfinite(scores[i, k])
+            and not np.array_equal(candidates[i, :, k] != 0, chosen)
+            and (not rivals or _rival(candidates[i, :, k], chosen_coef))
         ]  # fmt: skip
         if other:
             out[k] = np.min(scores[other, k]) - scores[index[k], k]
@@ -470,6 +502,7 @@ def select(
         path=full,
         criterion=criterion,
         margin=score_margin(pooled_scores, pooled, chosen),
+        rival_margin=score_margin(pooled_scores, pooled, chosen, rivals=True),
         subsets=subset_coef,
         subset_scores=subset_scores,
         subset_size=subset_size,

@@ -85,6 +85,8 @@ class Screening:
     restarted : bool
         True when another iteration (from every sample, or from a forward search)
         replaced the one from ``start`` (step 4 of :func:`screen_rows`).
+    swapped : ndarray of bool (m,)
+        Samples kept with their ``alternative`` row (step 5 of :func:`screen_rows`).
     """
 
     outliers: np.ndarray
@@ -94,6 +96,7 @@ class Screening:
     rounds: int
     converged: bool
     restarted: bool = False
+    swapped: np.ndarray | None = None
 
     def __repr__(self) -> str:
         return (
@@ -252,6 +255,7 @@ def screen_rows(
     max_rounds: int = 20,
     method: str = "admm",
     noise=None,
+    alternative=None,
 ) -> Screening:
     """Flag samples whose residual is gross in any equation of a robust pilot.
 
@@ -284,6 +288,14 @@ def screen_rows(
        That comparison leaves out the local scale of each outcome's own residuals, so
        that a pilot bent by gross errors cannot excuse its residuals by the local scale
        they raise.
+    5. with an ``alternative`` row for some samples (:class:`~robust_sindy.HuberSINDy`
+       passes the library of the readings the temporal screen repaired), a flagged
+       sample whose alternative row is not gross under the final pilot is kept with
+       that row, a kept sample takes its alternative row where that row's residual is
+       the smaller (both judged by a pilot fitted on the kept samples with the
+       alternative rows in), and the iteration runs once more from the samples so
+       kept: a glitch in one entry costs that entry, not the sample, and a moderate
+       glitch does not stay in the fit.
 
     With ``noise`` (the noise of the states carried through the library, one array per
     state), the bound of a sample is also at least the residual that this noise gives
@@ -311,6 +323,8 @@ def screen_rows(
     noise : list of array_like (m, p), optional
         Per state, the first-order noise of every library column at every sample (the
         state's noise level times the column's derivative by that state).
+    alternative : tuple (ndarray of int (k,), ndarray (k, p)), optional
+        Samples and another row of ``theta`` for each (step 5).
 
     Returns
     -------
@@ -349,7 +363,8 @@ def screen_rows(
         keep = np.ones(m, dtype=bool)  # too little left to fit: start from everything
     pilots = _Pilots(theta, y, keep, segments, half, noise, cutoff, rounds, method)
     first, rms = pilots.first, pilots.rms
-    flags, scale, done_rounds, converged, r, coef = pilots.iterate(keep)
+    outcome = pilots.iterate(keep)
+    flags, scale, done_rounds, converged, r, coef = outcome
     restarted = False
     if (
         not first.all()
@@ -376,9 +391,52 @@ def screen_rows(
         explained = [int((gross_ratio(rr, b, cutoff) <= 1).sum()) for rr, b in bounds]
         best = int(np.argmax(explained))
         if best > 0 and explained[best] - explained[0] > _COMPETE_MARGIN * m:
-            flags, scale, done_rounds, converged = cands[best - 1][:4]
+            outcome = cands[best - 1]
             restarted = True
-    return Screening(flags, scale, scale / rms, first, done_rounds, converged, restarted)
+    swapped = np.zeros(m, dtype=bool)
+    if alternative is not None:
+        outcome, swapped = _second_chance(pilots, outcome, alternative)
+    flags, scale, done_rounds, converged = outcome[:4]
+    return Screening(flags, scale, scale / rms, first, done_rounds, converged, restarted, swapped)
+
+
+def _second_chance(pilots: _Pilots, outcome, alternative):
+    """Step 5 of :func:`screen_rows`.  A judge pilot is fitted on the samples
+    ``outcome`` (an iteration's result) kept, with the ``alternative`` rows in (the
+    final pilot was fitted with the samples' own rows, which bend it towards a glitched
+    row it kept).  Under it, a flagged sample takes its alternative row when that row is
+    not gross, a kept one when that row's residual is the smaller; then the iteration
+    runs again from the samples kept."""
+    flags, scale = outcome[0], outcome[1]
+    at, rows = np.asarray(alternative[0], dtype=int), alternative[1]
+    swapped = np.zeros(flags.size, dtype=bool)
+    if not at.size:
+        return outcome, swapped
+
+    def pilots_on(theta):
+        return _Pilots(
+            theta, pilots.y, pilots.first, pilots.segments, pilots.half, pilots.noise,
+            pilots.cutoff, pilots.rounds, pilots.method,
+        )  # fmt: skip
+
+    mixed = pilots.theta.copy()
+    mixed[at] = rows
+    judge = pilots_on(mixed)
+    coef = judge.pilot(~flags)[0]
+    r_alt = pilots.y - mixed @ coef
+    r_own = r_alt.copy()
+    r_own[at] = pilots.y[at] - pilots.theta[at] @ coef
+    centre = np.median(r_alt[~flags], axis=0)
+    own = judge.scaled(r_own - centre, scale, coef)[at]
+    alt = judge.scaled(r_alt - centre, scale, coef)[at]
+    take = np.where(flags[at], alt <= 1, alt < own)
+    if not take.any():
+        return outcome, swapped
+    swapped[at[take]] = True
+    theta = pilots.theta.copy()
+    theta[at[take]] = rows[take]
+    outcome = pilots_on(theta).iterate(~flags | swapped)
+    return outcome, swapped & ~outcome[0]
 
 
 @dataclass(frozen=True)
@@ -398,7 +456,14 @@ class RowScreen:
 
 
 def screen_samples(
-    problem: Problem, entry_flags, unresolved, *, measured: bool, method: str, screen: bool
+    problem: Problem,
+    entry_flags,
+    unresolved,
+    *,
+    measured: bool,
+    method: str,
+    screen: bool,
+    alternative=None,
 ) -> RowScreen:
     """The samples to fit: with ``screen``, those whose derivatives are resolved
     (``unresolved``: estimated derivatives the sampling does not resolve carry a
@@ -406,12 +471,20 @@ def screen_samples(
     :func:`screen_rows` keeps, started from the samples without temporally flagged
     entries (``entry_flags``, m x n).  The state noise carried through the model excuses
     residuals only with ``measured`` derivatives: estimated ones add their own errors
-    along fast excursions, where the carried noise is largest."""
+    along fast excursions, where the carried noise is largest.  ``alternative`` (samples,
+    and their rows in user units) is passed on to :func:`screen_rows`, whose
+    ``swapped`` then marks those samples (of all) kept with it."""
     m = problem.shape[0]
     if not screen:
         return RowScreen(np.ones(m, dtype=bool), None)
     keep = ~unresolved
     noise = problem.noise if measured and problem.noise else None
+    other = None
+    if alternative is not None:
+        at, rows = np.asarray(alternative[0], dtype=int), alternative[1]
+        usable = keep[at]
+        position = np.cumsum(keep) - 1
+        other = (position[at[usable]], problem.scaler.theta(rows[usable]))
     found = screen_rows(
         problem.theta_s[keep],
         problem.y_s[keep],
@@ -419,7 +492,10 @@ def screen_samples(
         segments=segments_of(keep, problem.segments),
         method=method,
         noise=None if noise is None else [a[keep] for a in noise],
+        alternative=other,
     )
-    outliers, start = np.zeros(m, dtype=bool), np.zeros(m, dtype=bool)
-    outliers[keep], start[keep] = found.outliers, found.start
-    return RowScreen(keep & ~outliers, replace(found, outliers=outliers, start=start))
+    outliers, start, swapped = (np.zeros(m, dtype=bool) for _ in range(3))
+    outliers[keep], start[keep], swapped[keep] = found.outliers, found.start, found.swapped
+    return RowScreen(
+        keep & ~outliers, replace(found, outliers=outliers, start=start, swapped=swapped)
+    )

@@ -19,11 +19,12 @@ import numpy as np
 
 from .problem import SolverOutput
 
-__all__ = ["SOLVERS", "solve_cvxpy"]
+__all__ = ["SETTINGS", "SOLVERS", "solve_cvxpy"]
 
 SOLVERS = ("clarabel", "osqp")
 
-_SETTINGS = {
+#: The reference solvers' tight default settings.
+SETTINGS = {
     "clarabel": dict(tol_gap_abs=1e-10, tol_gap_rel=1e-10, tol_feas=1e-10, max_iter=500),
     "osqp": dict(eps_abs=1e-9, eps_rel=1e-9, max_iter=400_000, polishing=True),
 }
@@ -108,7 +109,7 @@ def solve_cvxpy(
     _m, p = theta.shape
     n = y.shape[1]
     lam = np.broadcast_to(lam, (p, n))
-    settings = {**_SETTINGS[solver], **solver_options}
+    settings = {**SETTINGS[solver], **solver_options}
     coef = np.zeros((p, n))
     iterations = np.zeros(n, dtype=int)
     converged = np.zeros(n, dtype=bool)

@@ -1,0 +1,439 @@
+"""The Huber-Lasso problem over all equations at once, under linear constraints.
+
+.. math::
+
+    \\min_{\\Xi} \\sum_k \\sum_i H_{\\delta_k}(y_{ik} - \\theta_i \\xi_k)
+    + \\sum_{jk} \\lambda_{jk} |\\Xi_{jk}|
+    \\quad \\text{s.t.} \\quad A_{eq} x = b_{eq}, \\; A_{ub} x \\le b_{ub},
+    \\quad x = \\operatorname{vec}(\\Xi)
+
+(:mod:`robust_sindy.core.constraints` gives the ordering and the certificate).
+
+**Reference** (:func:`solve_constrained_cvxpy`): the problem posed in CVXPY,
+``cp.huber`` (which is ``2 H``, hence the factor 1/2), ``cp.abs`` and the
+constraints on ``cp.vec(Xi)``, solved by Clarabel or OSQP.
+
+**Fast path** (:func:`solve_constrained_admm`): the Huber loss is the infimal
+convolution ``H_delta(r) = min_w (r - w)^2 / 2 + delta |w|``, so the problem is a
+least-squares problem in ``(x, w)`` with L1 terms on both.  Inequalities get slacks
+``A_ub x + s = b_ub``, ``s >= 0``.  ADMM splits ``(x, s, w)`` (a least-squares step
+under the equality constraints: one Cholesky factor of ``kappa Theta^T Theta + rho I``,
+shared by every equation, and a Schur complement of the size of the constraints)
+from copies ``(z, q, v)`` (soft-thresholding and a clip: ``v`` is nonzero exactly on
+the outliers, ``z`` exactly on the support).  Then a polish: on the support, the
+inliers and the active inequalities that the iteration found, the optimality
+conditions are linear (an equality-constrained least-squares problem); it is solved
+and the sets are updated until they no longer change.  The certificate decides.
+"""
+
+from __future__ import annotations
+
+import numpy as np
+import scipy.linalg
+
+from ..core.certificates import column_norms
+from ..core.constraints import LinearConstraints, constrained_certificate
+from ..core.losses import soft_threshold
+
+__all__ = [
+    "POLISH_ROUNDS",
+    "ConstrainedOutput",
+    "solve_constrained_admm",
+    "solve_constrained_cvxpy",
+]
+
+#: Rounds of an early polish (ADMM residuals above 1e-4 of the iterates' size).
+POLISH_ROUNDS = 15
+
+
+class ConstrainedOutput:
+    """A solver's answer: ``coef`` (p, n), ``iterations``, ``status`` and its multipliers
+    (``nu``, ``mu``; None when it has none)."""
+
+    def __init__(self, coef, iterations, status, nu=None, mu=None, info=None):
+        self.coef, self.iterations, self.status = coef, int(iterations), status
+        self.nu, self.mu, self.info = nu, mu, info or {}
+        self.certificate = None  # the constrained certificate of coef, when computed
+
+
+def _normalised(theta, y, delta, lam, constraints):
+    """The problem in units where the library's columns have norm 1, the targets a root
+    mean square of 1 (``x = back * u``) and each constraint row (with its bound) norm 1:
+    ``(theta, y, delta, lam (vec), back, (c_eq, b_eq, size_eq), (c_ub, b_ub, size_ub),
+    sigma)``.  The objective is ``sigma^2`` times the original one, and a multiplier
+    ``nu'`` of a normalised row is ``sigma^2 nu' / size`` in the original units."""
+    p, n = theta.shape[1], y.shape[1]
+    norms = column_norms(theta)
+    scale = np.where(norms > 0, norms, 1.0)
+    sigma = float(np.sqrt(np.mean(y**2)))
+    sigma = sigma if np.isfinite(sigma) and sigma > 0 else 1.0
+    lam = np.broadcast_to(np.asarray(lam, dtype=float), (p, n))
+    back = sigma / np.tile(scale, n)
+
+    def rows(a, b):
+        a = a * back
+        size = np.sqrt(np.einsum("ij,ij->i", a, a) + b**2)
+        size = np.where(size > 0, size, 1.0)
+        return a / size[:, None], b / size, size
+
+    return (
+        theta / scale, y / sigma, np.asarray(delta, dtype=float) / sigma,
+        (lam / (sigma * scale[:, None])).ravel(order="F"), back,
+        rows(constraints.A_eq, constraints.b_eq), rows(constraints.A_ub, constraints.b_ub), sigma,
+    )  # fmt: skip
+
+
+def solve_constrained_cvxpy(
+    theta, y, delta, lam, constraints: LinearConstraints, *, solver="clarabel", verbose=False,
+    **solver_options,
+) -> ConstrainedOutput:  # fmt: skip
+    """The constrained problem posed in CVXPY (the reference), in the normalised units
+    of :func:`_normalised` (the interior-point method's tolerances are absolute: in the
+    user's units a problem scaled by 1e12 reads as infeasible)."""
+    import cvxpy as cp
+
+    from .reference import SETTINGS
+
+    name = solver.upper()
+    if name not in cp.installed_solvers():
+        raise ImportError(
+            f"solver={solver!r} is not installed for CVXPY; install it with `pip install {solver}`"
+        )
+    p, n = theta.shape[1], y.shape[1]
+    ts, ys, ds, lam_s, back, (c_eq, b_eq, size_eq), (c_ub, b_ub, size_ub), sigma = _normalised(
+        theta, y, delta, lam, constraints
+    )
+    u = cp.Variable((p, n))
+    resid = ys - ts @ u
+    loss = sum(
+        0.5 * cp.sum_squares(resid[:, k])
+        if np.isinf(ds[k])
+        else 0.5 * cp.sum(cp.huber(resid[:, k], float(ds[k])))
+        for k in range(n)
+    )
+    vec = cp.vec(u, order="F")
+    cons = []
+    if c_eq.shape[0]:
+        cons.append(c_eq @ vec == b_eq)
+    if c_ub.shape[0]:
+        cons.append(c_ub @ vec <= b_ub)
+    problem = cp.Problem(cp.Minimize(loss + lam_s @ cp.abs(vec)), cons)
+    settings = {**SETTINGS[solver], **solver_options}
+    try:
+        problem.solve(solver=name, verbose=verbose, **settings)
+    except cp.error.SolverError as exc:
+        return ConstrainedOutput(np.zeros((p, n)), 0, f"{solver} failed: {exc}")
+    if u.value is None:
+        return ConstrainedOutput(np.zeros((p, n)), 0, f"{solver}: {problem.status}")
+    coef = (back * np.asarray(u.value, dtype=float).ravel(order="F")).reshape(p, n, order="F")
+    # CVXPY's duals of "A x == b" and "A x <= b" are the multipliers of the Lagrangian
+    # with "+ nu^T (A x - b)", as in the certificate.
+    nu, mu = np.zeros(c_eq.shape[0]), np.zeros(c_ub.shape[0])
+    duals = [np.asarray(con.dual_value, dtype=float).reshape(-1) for con in cons]
+    if c_eq.shape[0]:
+        nu = sigma**2 * duals.pop(0) / size_eq
+    if c_ub.shape[0]:
+        mu = sigma**2 * duals.pop(0) / size_ub
+    stats = problem.solver_stats
+    iterations = stats.num_iters if stats is not None and stats.num_iters is not None else 0
+    return ConstrainedOutput(coef, iterations, f"{solver}: {problem.status}", nu, mu)
+
+
+class _Factor:
+    """``M^{-1}`` for ``M = I_n (x) (kappa G + rho I)`` (``G = Theta^T Theta``), and the
+    pseudo-inverse of the Schur complement ``C M^{-1} C^T + diag(0, I / rho)`` of the
+    constraints ``C = [A_eq; A_ub]`` (equalities first)."""
+
+    def __init__(self, gram, rho, c, n, r_eq):
+        self.rho, self.kappa = rho, rho / (1.0 + rho)
+        p = gram.shape[0]
+        self.chol = scipy.linalg.cho_factor(self.kappa * gram + rho * np.eye(p))
+        self.p, self.n, self.c = p, n, c
+        if c.shape[0]:
+            minv_ct = self.solve_m(c.T)
+            s = c @ minv_ct
+            s[r_eq:, r_eq:] += np.eye(c.shape[0] - r_eq) / rho
+            w, v = np.linalg.eigh(0.5 * (s + s.T))
+            keep = w > 1e-12 * max(float(w.max(initial=0.0)), np.finfo(float).tiny)
+            self.s_pinv = (v[:, keep] / w[keep]) @ v[:, keep].T
+            self.minv_ct = minv_ct
+
+    def solve_m(self, b):
+        """``M^{-1} b`` for ``b`` (p n,) or (p n, k), column-major blocks."""
+        shape = b.shape
+        blocks = b.reshape(self.n, self.p, -1).transpose(1, 0, 2).reshape(self.p, -1)
+        out = scipy.linalg.cho_solve(self.chol, blocks)
+        return out.reshape(self.p, self.n, -1).transpose(1, 0, 2).reshape(shape)
+
+
+def _theta_t(theta, r):
+    """``vec(Theta^T R)`` for ``R`` (m, n)."""
+    return (theta.T @ r).ravel(order="F")
+
+
+def _theta_x(theta, x, n):
+    """``Theta Xi`` for ``x = vec(Xi)``."""
+    return theta @ x.reshape(-1, n, order="F")
+
+
+def _objective(theta, y, delta, lam_v, x):
+    """The problem's objective at ``x`` (vec) and the residuals."""
+    r = y - _theta_x(theta, x, y.shape[1])
+    a = np.abs(r)
+    loss = np.where(a <= delta[None, :], 0.5 * r**2, delta[None, :] * (a - 0.5 * delta[None, :]))
+    return float(loss.sum() + lam_v @ np.abs(x)), r
+
+
+def _inlier_system(theta, y, delta, outside, out_sign, previous=None):
+    """Per equation, the Gram matrix of the inliers (n, p, p) and ``Theta_I^T y_I +
+    delta Theta_O^T sign(r_O)`` (p, n): the optimality conditions with these outliers.
+    ``previous`` (the Gram matrices and outliers of an earlier call) is updated by the
+    rows whose status changed when they are fewer than the outliers."""
+    grams = np.empty((y.shape[1], theta.shape[1], theta.shape[1]))
+    full = None
+    for k in range(y.shape[1]):
+        if previous is not None:
+            went = outside[:, k] & ~previous[1][:, k]
+            came = previous[1][:, k] & ~outside[:, k]
+            if went.sum() + came.sum() < outside[:, k].sum():
+                a, b = theta[went], theta[came]
+                grams[k] = previous[0][k] - a.T @ a + b.T @ b
+                continue
+        if full is None:
+            full = theta.T @ theta
+        out = theta[outside[:, k]]  # the full Gram matrix less the outliers' rows
+        grams[k] = full - out.T @ out
+    rhs = theta.T @ np.where(outside, delta[None, :] * out_sign, y)
+    return grams, rhs
+
+
+def _newton_point(system, lam_v, c, d, support, sign, p):
+    """The minimiser of the objective with the outliers' and the support's signs
+    fixed (``system``: :func:`_inlier_system`), on ``support``, under
+    ``c[:, support] x = d`` (least squares: a singular system gets its minimum-norm
+    solution).  Returns ``(x_support, multipliers)``."""
+    grams, rhs_full = system
+    cols, eq = support % p, support // p
+    same = eq[:, None] == eq[None, :]
+    h = np.where(same, grams[eq[:, None], cols[:, None], cols[None, :]], 0.0)
+    rhs = rhs_full[cols, eq] - lam_v[support] * sign
+    c = c[:, support]
+    kkt = np.block([[h, c.T], [c, np.zeros((c.shape[0], c.shape[0]))]])
+    sol = np.linalg.lstsq(kkt, np.concatenate([rhs, d]), rcond=None)[0]
+    return sol[: support.size], sol[support.size :]
+
+
+def _polish(
+    theta, y, delta, lam, c_eq, b_eq, c_ub, b_ub, x, active, rounds=30
+):  # fmt: skip
+    """A semismooth Newton method with working sets, from an approximate solution
+    ``x`` (vec) and its ``active`` inequalities.  On the support and signs of ``x``,
+    the outliers and signs of its residuals and the active inequalities, the
+    optimality conditions are linear (:func:`_newton_point`); the step towards that
+    point stops where a coefficient crosses zero (it leaves the support) or an
+    inactive inequality would be violated (it becomes active), and halves until the
+    objective does not increase.  Then inequalities with a negative multiplier are
+    released, and the terms whose stationarity is violated enter with the sign of
+    their violation (kept at zero when the solve gives them the other sign).  Stops
+    when a full step changes no set.  Returns ``(x, nu, mu)``, or None."""
+    p = theta.shape[1]
+    n = y.shape[1]
+    r_eq = c_eq.shape[0]
+    lam_v = lam.ravel(order="F")
+    norms = np.tile(np.sqrt(np.einsum("ij,ij->j", theta, theta)), n)
+    obj, r = _objective(theta, y, delta, lam_v, x)
+    entering = np.zeros_like(x)  # the sign each entering term must take
+    # Terms that entered with neither sign: with constraints the multipliers need not
+    # be unique, and another choice of them may well satisfy such a term at zero (the
+    # certificate fits them over every term); they do not enter again.
+    blocked = np.zeros(x.size, dtype=bool)
+    best = previous = None
+    for round_ in range(rounds):
+        outside = np.abs(r) > delta[None, :]
+        system = _inlier_system(theta, y, delta, outside, np.sign(r), previous)
+        previous = (system[0], outside)
+        c = np.vstack([c_eq, c_ub[active]])
+        d = np.concatenate([b_eq, b_ub[active]])
+        turned = np.zeros(x.size, dtype=bool)
+        while True:
+            support = np.flatnonzero((x != 0) | (entering != 0))
+            sign = np.where(x[support] != 0, np.sign(x[support]), entering[support])
+            xs, mult = _newton_point(system, lam_v, c, d, support, sign, p)
+            wrong = support[(entering[support] != 0) & (np.sign(xs) != entering[support])]
+            if not wrong.size:
+                break
+            # The constraints' multipliers move with the support: an entering term may
+            # belong on the other side. Once turned, a term that is still wrong stays
+            # at zero, and the system is solved again without it.
+            again = turned[wrong]
+            entering[wrong[again]] = 0.0
+            blocked[wrong[again]] = True
+            entering[wrong[~again]] *= -1.0
+            turned[wrong] = True
+        target = np.zeros_like(x)
+        target[support] = xs
+        step = target - x
+        alpha = 1.0
+        if round_:  # the first step reaches the constraints; later ones descend
+            old = x[support] != 0
+            cross = old & (np.sign(xs) != np.sign(x[support]))
+            if cross.any():
+                t = x[support][cross] / (x[support][cross] - xs[cross])
+                alpha = min(alpha, float(t.min()))
+            inactive = ~active
+            grow = c_ub[inactive] @ step
+            room = b_ub[inactive] - c_ub[inactive] @ x
+            hit = grow > 0
+            if hit.any():
+                alpha = min(alpha, float(np.min(np.maximum(room[hit], 0.0) / grow[hit])))
+        for _ in range(40):
+            trial = x + alpha * step
+            if alpha < 1.0:  # the crossing coefficients land exactly on zero
+                trial[support[(np.abs(trial[support]) <= 1e-12 * np.abs(x[support]))]] = 0.0
+            new_obj, new_r = _objective(theta, y, delta, lam_v, trial)
+            if not round_ or new_obj <= obj + 1e-13 * abs(obj):
+                break
+            alpha *= 0.5
+        else:
+            return None if best is None else (*best, False)
+        x, obj, r = trial, new_obj, new_r
+        entering[:] = 0.0
+        nu = mult[:r_eq]
+        mu = np.zeros(c_ub.shape[0])
+        mu[active] = mult[r_eq:]
+        psi = np.clip(r, -delta[None, :], delta[None, :])
+        hh = _theta_t(theta, psi) - c_eq.T @ nu - c_ub.T @ mu
+        scale = np.maximum(lam_v, norms * np.repeat(np.sqrt(np.sum(psi**2, axis=0)), p))
+        excess = np.where((x == 0) & ~blocked, (np.abs(hh) - lam_v) / scale, 0.0)
+        enter = np.zeros_like(excess, dtype=bool)
+        if excess.max(initial=0.0) > 1e-10:  # the most violated term enters, one a round
+            enter[np.argmax(excess)] = True
+        release = active & (mu < 0)
+        violated = ~active & (c_ub @ x > b_ub)
+        best = (x.copy(), nu, np.maximum(mu, 0.0))
+        same = np.array_equal(np.abs(r) > delta[None, :], outside)
+        if alpha == 1.0 and same and not (enter.any() or release.any() or violated.any()):
+            return (*best, True)
+        entering[enter] = np.sign(hh[enter])
+        active = (active & ~release) | violated
+    return None if best is None else (*best, False)
+
+
+def solve_constrained_admm(
+    theta, y, delta, lam, constraints: LinearConstraints, *, rho=1.0, alpha=1.6,
+    max_iter=20_000, eps=1e-9, tol=1e-8, check_every=10, polish=True,
+) -> ConstrainedOutput:  # fmt: skip
+    """The constrained problem by ADMM on the Huber loss's infimal convolution, then a
+    polish on the sets it found (see the module docstring); ``tol`` is the relative
+    KKT violation (stationarity and constraint residual) that stops it.
+
+    It runs in units where the library's columns have norm 1 and the targets a root
+    mean square of 1 (``u = scale x / sigma``), with each constraint's row of unit
+    norm: the same iterates whatever the units of the states, time and terms."""
+    m, p = theta.shape
+    n = y.shape[1]
+    lam = np.broadcast_to(np.asarray(lam, dtype=float), (p, n))
+    delta = np.asarray(delta, dtype=float)
+    ts, ys, ds, lam_s, back, (c_eq, b_eq, size_eq), (c_ub, b_ub, size_ub), sigma = _normalised(
+        theta, y, delta, lam, constraints
+    )
+    r_eq, r_ub = c_eq.shape[0], c_ub.shape[0]
+    c = np.vstack([c_eq, c_ub])
+    gram = ts.T @ ts
+    N = p * n
+    x, z, u_x = np.zeros(N), np.zeros(N), np.zeros(N)
+    s, q, u_s = np.zeros(r_ub), np.zeros(r_ub), np.zeros(r_ub)
+    w, v, u_w = np.zeros((m, n)), np.zeros((m, n)), np.zeros((m, n))
+    fac = _Factor(gram, rho, c, n, r_eq)
+
+    def certificate(point, nu=None, mu=None):
+        coef = (back * point).reshape(p, n, order="F")
+        if nu is not None:  # the multipliers in the user's units
+            nu, mu = sigma**2 * nu / size_eq, sigma**2 * mu / size_ub
+        return coef, constrained_certificate(theta, y, coef, delta, lam, constraints, nu, mu)
+
+    history = []
+    it = 0
+    status = "max_iter"
+    best = last = None
+    for it in range(1, max_iter + 1):
+        a_x, a_s, a_w = z - u_x, q - u_s, v - u_w
+        x0 = fac.solve_m(fac.kappa * _theta_t(ts, ys - a_w) + fac.rho * a_x)
+        if c.shape[0]:
+            multipliers = fac.s_pinv @ (c @ x0 - np.concatenate([b_eq, b_ub - a_s]))
+            x = x0 - fac.minv_ct @ multipliers
+            s = a_s - multipliers[r_eq:] / fac.rho
+        else:
+            x = x0
+        w = (ys - _theta_x(ts, x, n) + fac.rho * a_w) / (1.0 + fac.rho)
+        # Over-relaxed copies: soft-thresholding, a clip, soft-thresholding.
+        xh = alpha * x + (1 - alpha) * z
+        sh = alpha * s + (1 - alpha) * q
+        wh = alpha * w + (1 - alpha) * v
+        z_old, q_old, v_old = z, q, v
+        z = soft_threshold(xh + u_x, lam_s / fac.rho)
+        q = np.maximum(sh + u_s, 0.0)
+        v = np.sign(wh + u_w) * np.maximum(np.abs(wh + u_w) - ds[None, :] / fac.rho, 0.0)
+        u_x, u_s, u_w = u_x + xh - z, u_s + sh - q, u_w + wh - v
+        if it % check_every:
+            continue
+        primal = np.sqrt(np.sum((x - z) ** 2) + np.sum((s - q) ** 2) + np.sum((w - v) ** 2))
+        dual = fac.rho * np.sqrt(
+            np.sum((z - z_old) ** 2) + np.sum((q - q_old) ** 2) + np.sum((v - v_old) ** 2)
+        )
+        size = max(np.sqrt(np.sum(z**2) + np.sum(v**2) + np.sum(q**2)), 1e-300)
+        history.append((it, primal / size, dual / size))
+        done = max(primal, dual) <= eps * size or it == max_iter
+        # The polish from every new support and set of active inequalities, and at the
+        # end (the polish finds the outliers itself).
+        sets = (z != 0, q == 0)
+        fresh = last is None or any(
+            not np.array_equal(a, b) for a, b in zip(sets, last, strict=True)
+        )
+        last = sets
+        candidates = []
+        if polish and (fresh or done):
+            # Far from the optimum (ADMM residuals above 1e-4) a few rounds only: the
+            # polish settles there when the sets are right, and ADMM goes on when not.
+            rounds = 50 if done or max(primal, dual) <= 1e-4 * size else POLISH_ROUNDS
+            point, nu, mu, settled = _polish_point(
+                ts, ys, ds, lam_s, c_eq, b_eq, c_ub, b_ub, z, q, rounds
+            )
+            if settled or done:  # an unsettled polish is not worth a certificate
+                candidates.append((point, nu, mu))
+        if done:
+            candidates.append((z, None, None))
+        for point, nu, mu in candidates:
+            coef, cert = certificate(point, nu, mu)
+            if best is None or cert.kkt < best[1].kkt:
+                best = (coef, cert)
+        if best is not None and best[1].kkt <= tol:
+            status = "certified"
+            break
+        if done:
+            status = "stopped"
+            break
+        # Residual balancing: keep the primal and dual residuals within 10x.
+        if it % (10 * check_every) == 0 and dual > 0 and primal > 0:
+            ratio = primal / dual
+            if ratio > 10 or ratio < 0.1:
+                factor = np.sqrt(ratio)
+                u_x, u_s, u_w = u_x / factor, u_s / factor, u_w / factor
+                fac = _Factor(gram, fac.rho * factor, c, n, r_eq)
+    if best is None:
+        best = certificate(z)
+    coef, cert = best
+    info = {"history": history, "rho": fac.rho}
+    out = ConstrainedOutput(coef, it, status, cert.nu, cert.mu, info=info)
+    out.certificate = cert
+    return out
+
+
+def _polish_point(ts, y, delta, lam_s, c_eq, b_eq, c_ub, b_ub, z, q, rounds=30):
+    """The polish from the ADMM copy ``z`` (exactly sparse) and the inequalities whose
+    slack ``q`` is zero, with its multipliers and whether it settled, or ``z``."""
+    p = ts.shape[1]
+    n = y.shape[1]
+    lam = lam_s.reshape(p, n, order="F")
+    out = _polish(ts, y, delta, lam, c_eq, b_eq, c_ub, b_ub, z.copy(), q == 0, rounds)
+    return (z, None, None, False) if out is None else out

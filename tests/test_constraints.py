@@ -1,0 +1,379 @@
+"""Linear constraints across equations: builders, the constrained certificate, and the
+fast path against the CVXPY reference."""
+
+import itertools
+import warnings
+
+import numpy as np
+import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import robust_sindy as rs
+from robust_sindy import constraints as rc
+from robust_sindy.core.constraints import LinearConstraints, constrained_certificate
+
+
+def _names(n, degree=2):
+    return rs.PolynomialLibrary(degree=degree).fit(np.zeros((1, n))).get_feature_names()
+
+
+def _energy_preserving_quadratics(n, rng):
+    """Random quadratic coefficients (p, n) of a degree-2 library whose quadratic part
+    conserves |x|^2: built from antisymmetric combinations, checked independently."""
+    names = _names(n)
+    coef = np.zeros((len(names), n))
+    at = {}
+    for j, name in enumerate(names):
+        at[name] = j
+    for a, b in itertools.combinations(range(n), 2):
+        # x_a' += c x_a x_b, x_b' -= c x_a^2 : the cubic x_a^2 x_b cancels.
+        c = rng.normal()
+        coef[at[f"x{a}*x{b}"], a] += c
+        coef[at[f"x{a}^2"], b] -= c
+    return names, coef
+
+
+def _cubic_part(names, coef, x):
+    """sum_i x_i f_i(x) of the quadratic terms only, at the points x (k, n)."""
+    lib = rs.PolynomialLibrary(degree=2).fit(np.zeros((1, x.shape[1])))
+    quad = np.array([name.count("*") == 1 or "^2" in name for name in names])
+    return np.sum(x * (lib.transform(x)[:, quad] @ coef[quad]), axis=1)
+
+
+@pytest.mark.parametrize("n", [1, 2, 3, 5])
+def test_energy_preserving_rows_are_the_cubic_terms_of_the_energy_rate(n):
+    rng = np.random.default_rng(n)
+    names = _names(n)
+    con = rc.energy_preserving(names)
+    assert con.A_eq.shape == (len(list(itertools.combinations_with_replacement(range(n), 3))),
+                              len(names) * n)  # fmt: skip
+    # A matrix whose quadratic part conserves energy satisfies them exactly, and a
+    # random one violates them; in both cases the rows vanish iff sum_i x_i f_i does.
+    good_names, good = _energy_preserving_quadratics(n, rng)
+    assert good_names == names
+    x = rng.normal(size=(50, n))
+    assert np.allclose(_cubic_part(names, good, x), 0.0, atol=1e-12)
+    assert con.residual(good) < 1e-14
+    bad = rng.normal(size=good.shape)
+    assert con.residual(bad) > 1e-3
+    assert np.abs(_cubic_part(names, bad, x)).max() > 1e-3
+    # The rows are the coefficients of the cubic monomials: projecting a random matrix
+    # on their null space kills the cubic part everywhere.
+    a = con.A_eq
+    v = bad.ravel(order="F")
+    proj = v - a.T @ np.linalg.lstsq(a @ a.T, a @ v, rcond=None)[0]
+    assert np.allclose(_cubic_part(names, proj.reshape(good.shape, order="F"), x), 0, atol=1e-10)
+
+
+def test_builders_name_what_they_cannot_find():
+    names = _names(3)
+    with pytest.raises(ValueError, match="x0\\*x1"):
+        rc.energy_preserving([n for n in names if n != "x0*x1"], states=["x0", "x1", "x2"])
+    with pytest.raises(ValueError, match="no library term named 'x9'"):
+        rc.fixed(names, "x9", 0, 1.0)
+    with pytest.raises(ValueError, match="no equation for a state named 'w'"):
+        rc.sign(names, "x0", "w", "+")
+    with pytest.raises(ValueError, match="which must be"):
+        rc.sign(names, "x0", 0, "positive")
+    with pytest.raises(ValueError, match="shapes"):
+        _ = rc.fixed(names, "x0", 0, 1.0) + rc.fixed(_names(2), "x0", 0, 1.0)
+    with pytest.raises(ValueError, match="A_eq must have shape"):
+        LinearConstraints(2, 2, np.ones((1, 3)), [0.0])
+
+
+def test_named_constraints_say_what_they_say():
+    names = _names(2)  # 1, x0, x1, x0^2, x0*x1, x1^2
+    con = (
+        rc.fixed(names, "x0", "x0", -1.0)
+        + rc.equal(names, ("x1", 0), ("x0", 1))
+        + rc.antisymmetric(names, ("x0*x1", 0), ("x0^2", 1))
+        + rc.sign(names, "1", "x1", "-")
+    )
+    assert len(con.labels_eq) == 3 and len(con.labels_ub) == 1
+    assert "fixed: x0 in (x0)' = -1" in con.labels_eq[0]
+    coef = np.zeros((6, 2))
+    coef[1, 0], coef[2, 0], coef[1, 1] = -1.0, 0.5, 0.5
+    coef[4, 0], coef[3, 1] = 2.0, -2.0
+    coef[0, 1] = -0.1
+    assert con.residual(coef) == 0.0
+    coef[0, 1] = 0.1  # the sign is violated
+    assert con.residual(coef) == pytest.approx(0.1 / 2.0)  # over max|coef|
+    assert con.tied()[[0, 1, 2, 3, 4], :].any() and not con.tied()[5].any()
+
+
+def _random_problem(seed, m, p, n):
+    rng = np.random.default_rng(seed)
+    theta = rng.normal(size=(m, p))
+    xi = rng.normal(size=(p, n)) * (rng.random((p, n)) < 0.6)
+    y = theta @ xi + 0.1 * rng.normal(size=(m, n))
+    y[rng.random((m, n)) < 0.1] += 10.0
+    big = p * n
+    r_eq, r_ub = int(rng.integers(1, min(4, big) + 1)), int(rng.integers(0, 4))
+    a_eq = rng.normal(size=(r_eq, big)) * (rng.random((r_eq, big)) < 0.5)
+    a_ub = rng.normal(size=(r_ub, big)) * (rng.random((r_ub, big)) < 0.5)
+    x0 = rng.normal(size=big) * 0.1
+    # Feasible by construction: x0 meets the equalities and has slack 0.1 in the rest.
+    con = LinearConstraints(p, n, a_eq, a_eq @ x0, a_ub, a_ub @ x0 + 0.1)
+    ys = float(np.abs(y).mean())
+    delta = ys * np.exp(rng.uniform(-3, 0.5))
+    lam = ys * np.sqrt(m) * np.exp(rng.uniform(-3, 2))
+    return theta, y, delta, lam, con
+
+
+def _in_other_units(problem, col, cy):
+    """The same problem with the library's columns scaled by ``col`` and the
+    derivatives by ``cy``: the coefficients become ``xi * cy / col``, the L1 weights
+    ``lam * cy * col`` (the objective is ``cy^2`` times the original) and the
+    constraints act on the original coefficients."""
+    theta, y, delta, lam, con = problem
+    p, n = con.shape
+    back = np.tile(col, n) / cy  # x = back * x_scaled
+    scaled = LinearConstraints(p, n, con.A_eq * back, con.b_eq, con.A_ub * back, con.b_ub)
+    lam_s = np.outer(col, np.full(n, lam * cy))
+    return theta * col, y * cy, delta * cy, lam_s, scaled
+
+
+def _agree(theta, y, delta, lam, con):
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", rs.ConvergenceWarning)
+        fast = rs.fit(theta, y, method="admm", delta=delta, lam=lam, constraints=con)
+        ref = rs.fit(theta, y, method="cvxpy", delta=delta, lam=lam, constraints=con)
+    assert fast.converged and ref.converged
+    assert fast.kkt.max() <= 1e-8 and fast.info["constraint_residual"] <= 1e-10
+    assert fast.certificate == "constrained huber-lasso KKT"
+    # The fast path's optimum is at least as good as the reference's, and they agree.
+    obj_fast, obj_ref = fast.objective.sum(), ref.objective.sum()
+    assert obj_fast <= obj_ref * (1 + 1e-9) + 1e-12
+    assert (obj_ref - obj_fast) <= 1e-6 * abs(obj_ref)
+    size = np.abs(ref.coef).max() + np.finfo(float).tiny
+    assert np.abs(fast.coef - ref.coef).max() <= 1e-3 * size
+    return fast, ref
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(
+    seed=st.integers(0, 10_000),
+    m=st.integers(40, 800),
+    p=st.integers(2, 8),
+    n=st.integers(1, 4),
+)
+def test_the_fast_path_agrees_with_the_reference_on_random_constrained_problems(seed, m, p, n):
+    _agree(*_random_problem(seed, m, p, n))
+
+
+@pytest.mark.parametrize("spread, cy", [(1e6, 1.0), (1.0, 1e12), (1.0, 1e-12), (1e3, 1e-6)])
+def test_the_solutions_do_not_depend_on_the_units(spread, cy):
+    # Library columns spread over `spread` and derivatives scaled by `cy`: both solvers
+    # certify, agree, and give the unit-scale answer in the new units.
+    for seed in range(3):
+        problem = _random_problem(seed, 400, 5, 2)
+        col = np.geomspace(1 / np.sqrt(spread), np.sqrt(spread), 5)
+        fast, _ref = _agree(*_in_other_units(problem, col, cy))
+        unit, _ = _agree(*problem)
+        expected = unit.coef * cy / col[:, None]
+        assert np.abs(fast.coef - expected).max() <= 1e-6 * np.abs(expected).max()
+
+
+def test_the_certificate_sees_a_perturbed_optimum_and_inactive_inequalities():
+    theta, y, delta, lam, con = _random_problem(7, 500, 5, 3)
+    fast = rs.fit(theta, y, delta=delta, lam=lam, constraints=con)
+    d = np.full(3, delta)
+    lam_full = np.full((5, 3), lam)
+    cert = constrained_certificate(theta, y, fast.coef, d, lam_full, con)
+    assert cert.kkt <= 1e-8 and cert.rel_gap <= 1e-8
+    slack = con.b_ub - con.A_ub @ fast.coef.ravel(order="F")
+    assert np.all(cert.mu >= 0) and np.all(cert.mu[slack > 1e-6] == 0)
+    # Moving along the constraints' null space (feasible) costs optimality.
+    a = con.A_eq
+    v = np.random.default_rng(0).normal(size=a.shape[1])
+    v -= a.T @ np.linalg.lstsq(a @ a.T, a @ v, rcond=None)[0]
+    moved = fast.coef + 1e-3 * np.abs(fast.coef).max() * v.reshape(5, 3, order="F")
+    assert constrained_certificate(theta, y, moved, d, lam_full, con).kkt > 1e-5
+    # Leaving the constraints is a feasibility violation.
+    off = fast.coef.copy()
+    off[0, 0] += 0.1 * np.abs(fast.coef).max()
+    assert constrained_certificate(theta, y, off, d, lam_full, con).feasibility > 1e-4
+
+
+def test_an_energy_preserving_quadratic_model_is_recovered_with_outliers():
+    # x' = mu x - y - x z, y' = mu y + x - y z, z' = -z + x^2 + y^2 (energy-preserving
+    # quadratic part), 5 % of the derivatives off by gross errors.
+    from scipy.integrate import solve_ivp
+
+    def rhs(v, mu=0.1):
+        a, b, c = v
+        return np.array([mu * a - b - a * c, mu * b + a - b * c, -c + a * a + b * b])
+
+    t = np.linspace(0, 10, 1000)
+    x = np.vstack([
+        solve_ivp(lambda _, v: rhs(v), (0, 10), ic, t_eval=t, rtol=1e-10).y.T
+        for ic in ([1, 0, 0.5], [0.1, 0.5, 2.0], [-1.5, 1, 0])
+    ])  # three transients: on the limit cycle alone the terms are collinear  # fmt: skip
+    rng = np.random.default_rng(0)
+    y = np.array([rhs(v) for v in x]) + 1e-3 * rng.normal(size=x.shape)
+    y[rng.random(y.shape) < 0.05] += 5.0
+    lib = rs.PolynomialLibrary(degree=2).fit(x)
+    con = rc.energy_preserving(lib.get_feature_names())
+    fit = rs.fit(lib.transform(x), y, delta=0.01, lam=0.1, constraints=con)
+    assert fit.converged and con.residual(fit.coef) <= 1e-12
+    names = lib.get_feature_names()
+    true = np.zeros((10, 3))
+    for eq, terms in enumerate(
+        [{"x0": 0.1, "x1": -1, "x0*x2": -1}, {"x1": 0.1, "x0": 1, "x1*x2": -1},
+         {"x2": -1, "x0^2": 1, "x1^2": 1}]
+    ):  # fmt: skip
+        for name, value in terms.items():
+            true[names.index(name), eq] = value
+    assert np.abs(fit.coef - true).max() < 0.01
+
+
+def test_constraints_are_checked_before_any_work():
+    theta, y, _delta, _lam, con = _random_problem(1, 100, 4, 2)
+    with pytest.raises(ValueError, match="LinearConstraints"):
+        rs.fit(theta, y, constraints=np.ones((2, 8)))
+    with pytest.raises(ValueError, match="shape"):
+        rs.fit(theta[:, :3], y, constraints=con)
+    with pytest.raises(ValueError, match="method='admm' or 'cvxpy'"):
+        rs.fit(theta, y, method="stls", constraints=con)
+    with pytest.raises(ValueError, match="unknown option"):
+        rs.fit(theta, y, constraints=con, newton_steps=3)
+
+
+def test_constraints_that_cannot_be_met_warn():
+    theta, y, delta, lam, _ = _random_problem(2, 100, 3, 1)
+    names = ["a", "b", "c"]
+    con = rc.fixed(names, "a", 0, 1.0, n_equations=1) + rc.fixed(names, "a", 0, 2.0, n_equations=1)
+    for method in ("admm", "cvxpy"):
+        with pytest.warns(rs.ConvergenceWarning, match="did not certify the constrained"):
+            out = rs.fit(theta, y, method=method, delta=delta, lam=lam, constraints=con)
+        assert not out.converged
+
+
+def _mean_field(noise, seed=0):
+    """x0' = 0.1 x0 - x1 - x0 x2, x1' = 0.1 x1 + x0 - x1 x2, x2' = -x2 + x0^2 + x1^2
+    (energy-preserving quadratic part), states with Gaussian noise."""
+    from scipy.integrate import solve_ivp
+
+    def rhs(v):
+        a, b, c = v
+        return [0.1 * a - b - a * c, 0.1 * b + a - b * c, -c + a * a + b * b]
+
+    t = np.linspace(0, 30, 3000)
+    x = solve_ivp(lambda _, v: rhs(v), (0, 30), [0.1, 0, 0], t_eval=t, rtol=1e-10).y.T
+    rng = np.random.default_rng(seed)
+    return t, x + noise * x.std(axis=0) * rng.normal(size=x.shape)
+
+
+def test_tied_terms_are_selected_together():
+    from robust_sindy.selection.constrained import tied_closure
+
+    names = _names(3)
+    con = rc.energy_preserving(names)
+    support = np.zeros((10, 3), dtype=bool)
+    support[names.index("x0*x2"), 0] = True
+    grown = tied_closure(support, con)
+    # x0*x2 in (x0)' meets x0^2 in (x2)' (the cubic x0^2 x2), and nothing else.
+    assert grown[names.index("x0^2"), 2] and grown.sum() == 2
+    assert np.array_equal(tied_closure(grown, con), grown)
+
+
+def test_huber_sindy_with_energy_preserving_constraints(tmp_path):
+    t, x = _mean_field(0.01)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = rs.HuberSINDy(constraints="energy_preserving").fit(x, t)
+    assert not caught, [str(c.message) for c in caught]
+    d = model.diagnostics_
+    assert d.constraint_residual <= 1e-10 and d.constraints_certified
+    assert "constraints: relative residual" in repr(d)
+    names = model.get_feature_names()
+    expected = [{"x0", "x1", "x0*x2"}, {"x0", "x1", "x1*x2"}, {"x2", "x0^2", "x1^2"}]
+    assert [{names[j] for j in np.flatnonzero(row)} for row in model.support_] == expected
+    con = rc.energy_preserving(names)
+    assert con.residual(model.coef_.T) <= 1e-10
+    # The same constraints given as a matrix, saved and loaded with the model.
+    again = rs.HuberSINDy(constraints=con).fit(x, t)
+    assert np.allclose(again.coef_, model.coef_, rtol=1e-8, atol=1e-12)
+    loaded = rs.load_model(again.save(tmp_path / "model.json"))
+    assert isinstance(loaded.constraints, LinearConstraints)
+    assert np.array_equal(loaded.constraints.A_eq, con.A_eq)
+    assert loaded.constraints.labels_eq == con.labels_eq
+    assert rs.load_model(model.save(tmp_path / "named.json")).constraints == "energy_preserving"
+
+
+def test_huber_sindy_refuses_constraints_it_cannot_use():
+    t, x = _mean_field(0.01)
+    with pytest.raises(ValueError, match="constraints must be None"):
+        rs.HuberSINDy(constraints="conservative").fit(x, t)
+    with pytest.raises(ValueError, match="shape"):
+        rs.HuberSINDy(constraints=rc.energy_preserving(_names(2))).fit(x, t)
+    da = pytest.importorskip("dask.array")
+    with pytest.raises(ValueError, match="in memory"):
+        rs.HuberSINDy(constraints="energy_preserving").fit(da.from_array(x), 0.01)
+
+
+def test_every_ensemble_member_is_constrained():
+    t, x = _mean_field(0.01)
+    ens = rs.EnsembleSINDy(
+        estimator=rs.HuberSINDy(constraints="energy_preserving"), n_models=3, random_state=0
+    )
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        ens.fit(x, t)
+    con = rc.energy_preserving(ens.get_feature_names())
+    assert len(ens.coef_stack_) >= 2
+    for coef in ens.coef_stack_:
+        assert con.residual(coef.T) <= 1e-10
+
+
+def test_the_command_line_fits_with_constraints(tmp_path, capsys):
+    import pandas as pd
+
+    from robust_sindy.cli import main
+
+    t, x = _mean_field(0.01)
+    frame = pd.DataFrame(x, columns=["a", "b", "c"])
+    frame.insert(0, "time", t)
+    path = tmp_path / "flow.csv"
+    frame.to_csv(path, index=False)
+    out = tmp_path / "res"
+    args = ["fit", str(path), "--out", str(out), "--quiet", "--constraints", "energy_preserving"]
+    assert main(args) == 0
+    assert "constraints: relative residual" in capsys.readouterr().out
+    model = rs.load_model(out / "model.json")
+    assert model.get_params()["constraints"] == "energy_preserving"
+    con = rc.energy_preserving(model.library_.get_feature_names())
+    assert con.residual(model.coef_.T) <= 1e-10
+
+
+def test_boundedness_is_certified_by_a_trapping_region():
+    from robust_sindy.selection.stability import boundedness, quadratic_parts
+
+    lib = rs.PolynomialLibrary(degree=2).fit(np.zeros((1, 3)))
+    names = lib.get_feature_names()
+
+    def model(terms):
+        coef = np.zeros((3, len(names)))
+        for (eq, name), value in terms.items():
+            coef[eq, names.index(name)] = value
+        return quadratic_parts(coef, lib.powers_, 3)
+
+    # Lorenz: energy-preserving quadratic part, trapping region centred at z = s + r.
+    lorenz = model({(0, "x0"): -10, (0, "x1"): 10, (1, "x0"): 28, (1, "x1"): -1,
+                    (1, "x0*x2"): -1, (2, "x2"): -8 / 3, (2, "x0*x1"): 1})  # fmt: skip
+    out = boundedness(*lorenz)
+    assert out.energy_preserving and out.bounded and out.trapping_eigenvalue < -0.5
+    assert abs(out.centre[2] - 38.0) < 1.0
+    # An unstable linear part with no quadratic term to bend it back: not certified.
+    growth = model({(0, "x0"): 1.0, (1, "x1"): -1.0, (2, "x2"): -1.0})
+    out = boundedness(*growth)
+    assert out.energy_preserving and not out.bounded
+    # A quadratic part that does not conserve energy: the test does not apply.
+    out = boundedness(*model({(0, "x0^2"): 1.0, (0, "x0"): -1.0}))
+    assert not out.energy_preserving and np.isnan(out.trapping_eigenvalue)
+    # Cubic terms or controls in the model: not a quadratic model.
+    cubic = rs.PolynomialLibrary(degree=3).fit(np.zeros((1, 3)))
+    coef = np.zeros((3, cubic.n_output_features_))
+    coef[0, -1] = 1.0
+    assert quadratic_parts(coef, cubic.powers_, 3) is None
