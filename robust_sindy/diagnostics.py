@@ -183,6 +183,9 @@ class Diagnostics:
         without); a warning says so above 1e-8, or when the constrained refit was not
         certified (``constraints_certified``).
     constraints_certified : bool
+    repaired_rows : int
+        Kept samples fitted with the library row of their repaired readings (the row
+        screen's step 5: a glitch costs its entry, not its sample).
     energy_residual : float
         For a model of degree at most 2 in the states (polynomial library, no control
         in a selected term), the largest cubic coefficient of ``x^T Q(x)`` over the
@@ -315,6 +318,7 @@ class Diagnostics:
     constraints_certified: bool = True
     energy_residual: float = float("nan")
     trapping_eigenvalue: float = float("nan")
+    repaired_rows: int = 0
 
     @property
     def weak(self) -> np.ndarray:
@@ -353,7 +357,8 @@ class Diagnostics:
             f"  temporal screen: {self.temporal_flagged_entries} entries in "
             f"{self.temporal_flagged_samples} samples",
             f"  model screen: {self.model_flagged_samples} samples left out, "
-            f"{self.readmitted_samples} readmitted, converged={self.screening_converged}"
+            f"{self.readmitted_samples} readmitted, {self.repaired_rows} fitted with their "
+            f"repaired readings, converged={self.screening_converged}"
             + (", restarted" if self.screening_restarted else ""),
             f"  unresolved derivatives: {self.unresolved_samples} samples left out",
             f"  left out in all: {100 * self.flagged_fraction:.1f} %",
@@ -876,6 +881,11 @@ def diagnose(
         selected_terms=np.count_nonzero(coef, axis=0),
         constraint_residual=float("nan") if constrained is None else constrained.residual,
         constraints_certified=True if constrained is None else constrained.converged,
+        repaired_rows=(
+            0
+            if screening is None or screening.swapped is None
+            else int((screening.swapped & keep).sum())
+        ),
         energy_residual=float("nan") if bounded is None else bounded.energy_residual,
         trapping_eigenvalue=float("nan") if bounded is None else bounded.trapping_eigenvalue,
         pilot_relative_scale=(

@@ -138,20 +138,30 @@ def _agree(theta, y, delta, lam, con):
     with warnings.catch_warnings():
         warnings.simplefilter("error", rs.ConvergenceWarning)
         fast = rs.fit(theta, y, method="admm", delta=delta, lam=lam, constraints=con)
+    # The interior-point reference is accurate to about 1e-5 in the certificate's
+    # measure, a little more or less with the BLAS (3.3e-5 on one case with OpenBLAS's
+    # Haswell kernels): it is held to 1e-4 here, the fast path to 1e-8.
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.ConvergenceWarning)
         ref = rs.fit(theta, y, method="cvxpy", delta=delta, lam=lam, constraints=con)
-    assert fast.converged and ref.converged
+    assert fast.converged and ref.kkt.max() <= 1e-4
+    assert ref.info["constraint_residual"] <= 1e-8
     assert fast.kkt.max() <= 1e-8 and fast.info["constraint_residual"] <= 1e-10
     assert fast.certificate == "constrained huber-lasso KKT"
     # The fast path's optimum is at least as good as the reference's, and they agree.
     obj_fast, obj_ref = fast.objective.sum(), ref.objective.sum()
     assert obj_fast <= obj_ref * (1 + 1e-9) + 1e-12
     assert (obj_ref - obj_fast) <= 1e-6 * abs(obj_ref)
-    size = np.abs(ref.coef).max() + np.finfo(float).tiny
+    # On the scale of the problem's coefficients (its least-squares fit): an answer of
+    # zeros is compared with the reference's rounding around zero.
+    size = np.abs(np.linalg.lstsq(theta, y, rcond=None)[0]).max()
     assert np.abs(fast.coef - ref.coef).max() <= 1e-3 * size
     return fast, ref
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@settings(
+    max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+)
 @given(
     seed=st.integers(0, 10_000),
     m=st.integers(40, 800),
