@@ -76,6 +76,18 @@ def _monomial(name: str, states: list[str]) -> tuple[int, ...] | None:
     return tuple(sorted(out))
 
 
+def _position(value, names: list[str], out_of_range: str, unknown: str) -> int:
+    """The index ``value`` (checked against ``len(names)``) or the position of the name
+    ``value`` in ``names``; ``ValueError`` with the message that fits otherwise."""
+    if isinstance(value, (int, np.integer)) and not isinstance(value, bool):
+        if not 0 <= value < len(names):
+            raise ValueError(out_of_range)
+        return int(value)
+    if value not in names:
+        raise ValueError(unknown)
+    return names.index(value)
+
+
 class _Index:
     """Positions in ``vec(Xi)`` of (term, equation) pairs given by name or index."""
 
@@ -85,22 +97,17 @@ class _Index:
         self.p, self.n = len(self.names), len(self.states)
 
     def term(self, term) -> int:
-        if isinstance(term, (int, np.integer)) and not isinstance(term, bool):
-            if not 0 <= term < self.p:
-                raise ValueError(f"term index {term} is out of range for {self.p} terms")
-            return int(term)
-        if term not in self.names:
-            raise ValueError(f"no library term named {term!r}; the terms are {self.names}")
-        return self.names.index(term)
+        return _position(
+            term, self.names, f"term index {term} is out of range for {self.p} terms",
+            f"no library term named {term!r}; the terms are {self.names}",
+        )  # fmt: skip
 
     def equation(self, equation) -> int:
-        if isinstance(equation, (int, np.integer)) and not isinstance(equation, bool):
-            if not 0 <= equation < self.n:
-                raise ValueError(f"equation {equation} is out of range for {self.n} equations")
-            return int(equation)
-        if equation not in self.states:
-            raise ValueError(f"no equation for a state named {equation!r}: {self.states}")
-        return self.states.index(equation)
+        return _position(
+            equation, self.states,
+            f"equation {equation} is out of range for {self.n} equations",
+            f"no equation for a state named {equation!r}: {self.states}",
+        )  # fmt: skip
 
     def at(self, term, equation) -> int:
         return self.equation(equation) * self.p + self.term(term)

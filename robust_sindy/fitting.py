@@ -271,15 +271,7 @@ def fit(
     if chunked.is_dask(theta) or chunked.is_dask(xdot):
         return _fit_dask(theta, xdot, method, delta, lam, loss, solver, options)
     theta, y, one_d = check_problem(theta, xdot)
-    n = y.shape[1]
-    if isinstance(delta, str) and delta == "auto":
-        if loss != "huber":
-            raise ValueError("delta='auto' applies to loss='huber' only")
-        delta = np.atleast_1d(auto_delta(theta, y))
-    delta_k = loss_delta(loss, delta, n)
-    lam_k = check_lam(lam, theta.shape[1], n, one_d)
-    if method != "cvxpy" and solver is not None:
-        raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
+    delta_k, lam_k = _delta_lam(theta, y, one_d, method, delta, lam, loss, solver)
 
     t0 = time.perf_counter()
     out, solver_name, tol, gap_tol, opts = _solve(
@@ -307,11 +299,6 @@ def fit(
             stacklevel=2,
         )
 
-    inliers = None
-    if loss == "huber":
-        inliers = np.abs(cert.residual) <= delta_k
-        if one_d:
-            inliers = inliers[:, 0]
     return FitResult(
         coef=out.coef[:, 0].copy() if one_d else out.coef,
         objective=cert.objective,
@@ -326,13 +313,47 @@ def fit(
         loss=loss,
         delta=delta_k,
         lam=lam_k,
-        inliers=inliers,
+        inliers=_inliers(cert.residual, delta_k, loss, one_d),
         dual=cert.psi,
         messages=out.messages,
         info=out.info,
         certificate=certificate,
         certificate_kkt=own_kkt,
     )
+
+
+def _delta_lam(theta, y, one_d, method, delta, lam, loss, solver):
+    """The threshold per column (``"auto"``: :func:`auto_delta`) and the L1 weights, checked,
+    and ``solver`` given only with ``method="cvxpy"``."""
+    n = y.shape[1]
+    if isinstance(delta, str) and delta == "auto":
+        if loss != "huber":
+            raise ValueError("delta='auto' applies to loss='huber' only")
+        delta = np.atleast_1d(auto_delta(theta, y))
+    delta_k = loss_delta(loss, delta, n)
+    lam_k = check_lam(lam, theta.shape[1], n, one_d)
+    if method != "cvxpy" and solver is not None:
+        raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
+    return delta_k, lam_k
+
+
+def _reference_solver(solver, options: dict) -> tuple[str, float]:
+    """The reference's solver name and certificate tolerance (``options["tol"]``, taken
+    out of ``options``), the rest of ``options`` checked for that solver."""
+    solver_name = "clarabel" if solver is None else solver
+    if solver_name not in reference.SOLVERS:
+        raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
+    tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
+    reference.check_options(solver_name, options)
+    return solver_name, tol
+
+
+def _inliers(residual, delta_k, loss: str, one_d: bool):
+    """``|r| <= delta`` per sample and column for the Huber loss (None otherwise)."""
+    if loss != "huber":
+        return None
+    inliers = np.abs(residual) <= delta_k
+    return inliers[:, 0] if one_d else inliers
 
 
 def _solve(method, theta, y, delta_k, lam_k, solver, options, one_d):
@@ -345,11 +366,7 @@ def _solve(method, theta, y, delta_k, lam_k, solver, options, one_d):
         out = driver.solve(theta, y, delta_k, lam_k, **opts)
         solver_name = "newton" if opts["polish"] else "admm"
     elif method == "cvxpy":
-        solver_name = "clarabel" if solver is None else solver
-        if solver_name not in reference.SOLVERS:
-            raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
-        tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
-        reference.check_options(solver_name, options)
+        solver_name, tol = _reference_solver(solver, options)
         out = reference.solve_cvxpy(theta, y, delta_k, lam_k, solver=solver_name, **options)
     elif method == "stls":
         _reject_unknown(options, {"threshold", "max_sweeps", "tol"}, "stls")
@@ -596,22 +613,11 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
     theta, y, one_d = check_problem(theta, xdot)
     n, p = y.shape[1], theta.shape[1]
     constraints.check_shape(p, n)
-    if isinstance(delta, str) and delta == "auto":
-        if loss != "huber":
-            raise ValueError("delta='auto' applies to loss='huber' only")
-        delta = np.atleast_1d(auto_delta(theta, y))
-    delta_k = loss_delta(loss, delta, n)
-    lam_k = check_lam(lam, p, n, one_d)
+    delta_k, lam_k = _delta_lam(theta, y, one_d, method, delta, lam, loss, solver)
     lam_full = np.broadcast_to(lam_k if lam_k.ndim == 2 else lam_k[None, :], (p, n))
-    if method != "cvxpy" and solver is not None:
-        raise ValueError(f"solver applies to method='cvxpy' only; got solver={solver!r}")
     t0 = time.perf_counter()
     if method == "cvxpy":
-        solver_name = "clarabel" if solver is None else solver
-        if solver_name not in reference.SOLVERS:
-            raise ValueError(f"solver must be one of {reference.SOLVERS}; got {solver!r}")
-        tol = check_positive(options.pop("tol", CVXPY_TOL), "tol")
-        reference.check_options(solver_name, options)
+        solver_name, tol = _reference_solver(solver, options)
         out = constrained.solve_constrained_cvxpy(
             theta, y, delta_k, lam_full, constraints, solver=solver_name, **options
         )
@@ -645,11 +651,6 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
             ConvergenceWarning,
             stacklevel=3,
         )
-    inliers = None
-    if loss == "huber":
-        inliers = np.abs(cert.residual) <= delta_k
-        if one_d:
-            inliers = inliers[:, 0]
     column_ok = np.full(n, converged)
     return FitResult(
         coef=out.coef[:, 0].copy() if one_d else out.coef,
@@ -665,7 +666,7 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
         loss=loss,
         delta=delta_k,
         lam=lam_k,
-        inliers=inliers,
+        inliers=_inliers(cert.residual, delta_k, loss, one_d),
         dual=cert.psi,
         messages=[out.status],
         info={

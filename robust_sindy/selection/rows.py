@@ -170,6 +170,13 @@ class _Pilots:
         # required (the final fit of the kept samples is certified on its own).
         self.budget = pilot_budget(method)
 
+    def with_theta(self, theta) -> _Pilots:
+        """The same pilots on another library matrix (of the same samples)."""
+        return _Pilots(
+            theta, self.y, self.first, self.segments, self.half, self.noise, self.cutoff,
+            self.rounds, self.method,
+        )  # fmt: skip
+
     def bound_of(self, r, scale, coef, with_local: bool = True):
         """Each residual's bound: the scale, the local scale of the trusted samples'
         residuals (with ``with_local``), and the state noise carried through the model (no
@@ -412,16 +419,9 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     swapped = np.zeros(flags.size, dtype=bool)
     if not at.size:
         return outcome, swapped
-
-    def pilots_on(theta):
-        return _Pilots(
-            theta, pilots.y, pilots.first, pilots.segments, pilots.half, pilots.noise,
-            pilots.cutoff, pilots.rounds, pilots.method,
-        )  # fmt: skip
-
     mixed = pilots.theta.copy()
     mixed[at] = rows
-    judge = pilots_on(mixed)
+    judge = pilots.with_theta(mixed)
     coef = judge.pilot(~flags)[0]
     r_alt = pilots.y - mixed @ coef
     r_own = r_alt.copy()
@@ -435,7 +435,7 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     swapped[at[take]] = True
     theta = pilots.theta.copy()
     theta[at[take]] = rows[take]
-    outcome = pilots_on(theta).iterate(~flags | swapped)
+    outcome = pilots.with_theta(theta).iterate(~flags | swapped)
     return outcome, swapped & ~outcome[0]
 
 

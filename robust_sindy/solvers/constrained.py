@@ -51,13 +51,14 @@ POLISH_ROUNDS = 15
 
 
 class ConstrainedOutput:
-    """A solver's answer: ``coef`` (p, n), ``iterations``, ``status`` and its multipliers
-    (``nu``, ``mu``; None when it has none)."""
+    """A solver's answer: ``coef`` (p, n), ``iterations``, ``status``, its multipliers
+    (``nu``, ``mu``; None when it has none) and the constrained certificate of ``coef``
+    when the solver computed it."""
 
-    def __init__(self, coef, iterations, status, nu=None, mu=None, info=None):
+    def __init__(self, coef, iterations, status, nu=None, mu=None, info=None, certificate=None):
         self.coef, self.iterations, self.status = coef, int(iterations), status
         self.nu, self.mu, self.info = nu, mu, info or {}
-        self.certificate = None  # the constrained certificate of coef, when computed
+        self.certificate = certificate
 
 
 def _normalised(theta, y, delta, lam, constraints):
@@ -371,16 +372,9 @@ def solve_constrained_admm(
         if settled:
             best = certificate(point, nu, mu)
             if best[1].kkt <= tol:
-                out = ConstrainedOutput(
-                    best[0],
-                    0,
-                    "certified",
-                    best[1].nu,
-                    best[1].mu,
-                    info={"history": history, "rho": rho, "start": "free"},
-                )
-                out.certificate = best[1]
-                return out
+                coef, cert = best
+                info = {"history": history, "rho": rho, "start": "unconstrained"}
+                return ConstrainedOutput(coef, 0, "certified", cert.nu, cert.mu, info, cert)
     for it in range(1, max_iter + 1):
         a_x, a_s, a_w = z - u_x, q - u_s, v - u_w
         x0 = fac.solve_m(fac.kappa * _theta_t(ts, ys - a_w) + fac.rho * a_x)
@@ -449,9 +443,7 @@ def solve_constrained_admm(
         best = certificate(z)
     coef, cert = best
     info = {"history": history, "rho": fac.rho}
-    out = ConstrainedOutput(coef, it, status, cert.nu, cert.mu, info=info)
-    out.certificate = cert
-    return out
+    return ConstrainedOutput(coef, it, status, cert.nu, cert.mu, info, cert)
 
 
 def _polish_point(ts, y, delta, lam_s, c_eq, b_eq, c_ub, b_ub, z, q, rounds=30):
