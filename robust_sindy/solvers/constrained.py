@@ -36,7 +36,7 @@ import scipy.linalg
 
 from ..core.certificates import column_norms
 from ..core.constraints import LinearConstraints, constrained_certificate
-from ..core.losses import soft_threshold
+from ..core.losses import huber, huber_psi, soft_threshold
 from . import driver
 
 __all__ = [
@@ -184,9 +184,7 @@ def _theta_x(theta, x, n):
 def _objective(theta, y, delta, lam_v, x):
     """The problem's objective at ``x`` (vec) and the residuals."""
     r = y - _theta_x(theta, x, y.shape[1])
-    a = np.abs(r)
-    loss = np.where(a <= delta[None, :], 0.5 * r**2, delta[None, :] * (a - 0.5 * delta[None, :]))
-    return float(loss.sum() + lam_v @ np.abs(x)), r
+    return float(huber(r, delta[None, :]).sum() + lam_v @ np.abs(x)), r
 
 
 def _inlier_system(theta, y, delta, outside, out_sign, previous=None):
@@ -306,7 +304,7 @@ def _polish(
         nu = mult[:r_eq]
         mu = np.zeros(c_ub.shape[0])
         mu[active] = mult[r_eq:]
-        psi = np.clip(r, -delta[None, :], delta[None, :])
+        psi = huber_psi(r, delta[None, :])
         hh = _theta_t(theta, psi) - c_eq.T @ nu - c_ub.T @ mu
         scale = np.maximum(lam_v, norms * np.repeat(np.sqrt(np.sum(psi**2, axis=0)), p))
         excess = np.where((x == 0) & ~blocked, (np.abs(hh) - lam_v) / scale, 0.0)
@@ -392,7 +390,7 @@ def solve_constrained_admm(
         z_old, q_old, v_old = z, q, v
         z = soft_threshold(xh + u_x, lam_s / fac.rho)
         q = np.maximum(sh + u_s, 0.0)
-        v = np.sign(wh + u_w) * np.maximum(np.abs(wh + u_w) - ds[None, :] / fac.rho, 0.0)
+        v = soft_threshold(wh + u_w, ds[None, :] / fac.rho)
         u_x, u_s, u_w = u_x + xh - z, u_s + sh - q, u_w + wh - v
         if it % check_every:
             continue
