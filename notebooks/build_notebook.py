@@ -189,9 +189,11 @@ job is to land inside it.""",
         "md",
         """## 4. The loss-versus-sparsity curve and the automatically selected point
 
-`select` runs a 50-point warm-started path, applies the selection stage at every point,
-and scores each refit by a robust BIC (`2 sum H_delta(r) / sigma^2 + k log m`). Beside it,
-the same curve for STLS as its threshold varies (all samples, least squares).""",
+`select` walks a 50-point warm-started path, applies the selection stage at every point,
+and scores each refit by a robust BIC (`2 sum H_delta(r) / sigma^2 + k log m`); an
+equation's path stops once the stage keeps proposing the support of its limit (the
+stage of the unpenalised fit), so only the points walked have scores. Beside it, the
+same curve for STLS as its threshold varies (all samples, least squares).""",
     ),
     (
         "code",
@@ -206,11 +208,12 @@ def envelope(nnz, val):
     return ks, np.array([min(v for n, v in zip(nnz, val, strict=True) if n == k) for k in ks])
 
 for k, name in enumerate(["(x)'", "(y)'", "(z)'"]):
-    nnz = np.count_nonzero(sel.candidates[:, :, k], axis=1)
+    used = np.flatnonzero(np.isfinite(sel.scores[:, k]))  # the points walked
+    nnz = np.count_nonzero(sel.candidates[used, :, k], axis=1)
     loss = [rs.objective(th_k, y_k[:, k], sel.candidates[i, :, k], d_auto[k], 0.0)[0]
-            for i in range(len(nnz))]
+            for i in used]
     axes[0].plot(*envelope(nnz, loss), "o-", ms=4, label=name)
-    i = sel.index[k]
+    i = list(used).index(sel.index[k])
     axes[0].plot(nnz[i], loss[i], "r*", ms=14)
 axes[0].set_yscale("log")
 axes[0].set_xlabel("nonzero terms")

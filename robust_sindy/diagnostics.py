@@ -835,12 +835,12 @@ def diagnose(
             noise_factor[k] = residual_noise_factor(yk[:, k] - th @ c, carried_noise(noise, c))
         state = state_noise_factors(noise, standard, noise_factor)
         if np.any(state < 1):
-            noise = [np.sqrt(f) * a for f, a in zip(state, noise, strict=True)]
+            noise = noise.scaled(np.sqrt(state))
             allowed = library_noise(noise, th)[1]
         for k in range(n):
             s = coef[:, k] != 0
             if s.any():
-                support_noise[k] = library_noise([a[:, s] for a in noise], th[:, s])[1]
+                support_noise[k] = library_noise(noise.terms(s), th[:, s])[1]
     below = np.full(coef.shape, np.nan)
     if selection is not None and floor.selection_tol > selection_tol:
         # Terms left out that the raised noise floor, not the data, decided about: above

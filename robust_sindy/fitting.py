@@ -534,14 +534,17 @@ def auto_delta(
     rtol: float = 1e-2,
     floor: float = 1e-4,
     method: str = "admm",
+    return_coef: bool = False,
+    start=None,
     **options,
-) -> np.ndarray | float:
+):
     """Per-column Huber threshold from the residual scale of a robust pilot fit.
 
     Start from the residuals of ordinary least squares; then repeat up to ``n_iter``
     times: ``delta = 1.345 * robust_scale(r)``, refit the unpenalised Huber regression
     (``lam = 0``) with that ``delta``, take its residuals ``r``; stop once ``delta``
-    changes by less than ``rtol`` (relative).
+    changes by less than ``rtol`` (relative).  With the fast path, each refit starts
+    from the previous one's coefficients (the first from least squares).
 
     Parameters
     ----------
@@ -559,12 +562,22 @@ def auto_delta(
         into an ill-conditioned least-absolute-deviation fit.
     method : {"admm", "cvxpy"}
         Solver of the pilot fits.
+    return_coef : bool
+        Also return the coefficients of the last pilot fit, shape (p, n) (least
+        squares for the columns never refitted): a start for a fit with the ``delta``
+        returned.
+    start : tuple (delta, coef), optional
+        A threshold per column (n,) and coefficients (p, n) to start from instead of
+        least squares: those of a pilot on nearly the same samples (the iteration then
+        usually ends after one refit).
     **options
         Solver options of the pilot fits (see :func:`robust_sindy.fit`).
 
     Returns
     -------
-    ndarray (n,), or float when ``xdot`` is 1-D.
+    delta : ndarray (n,), or float when ``xdot`` is 1-D.
+    coef : ndarray (p, n)
+        Only with ``return_coef``.
     """
     theta, y, one_d = check_problem(theta, xdot)
     n_iter = check_int(n_iter, "n_iter", 1)
@@ -572,20 +585,28 @@ def auto_delta(
         raise ValueError(f"method must be 'admm' or 'cvxpy' for the pilot fit; got {method!r}")
     lower = floor * np.sqrt(np.mean(y**2, axis=0))
     lower = np.where(lower > 0, lower, 1.0)
-    residual = y - theta @ np.linalg.lstsq(theta, y, rcond=None)[0]
-    delta = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(residual), lower)
+    if start is None:
+        coef = np.linalg.lstsq(theta, y, rcond=None)[0]
+        delta = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(y - theta @ coef), lower)
+    else:
+        delta = np.maximum(np.broadcast_to(np.asarray(start[0], dtype=float), lower.shape), lower)
+        coef = np.array(start[1], dtype=float).reshape(theta.shape[1], y.shape[1])
     # Columns already fitted to the floor by least squares have nothing to refine.
     todo = np.flatnonzero(delta > lower)
     for _ in range(n_iter):
         if todo.size == 0:
             break
+        if method == "admm":  # the previous pilot is close: a few Newton steps
+            options = {**options, "warm_start": coef[:, todo]}
         res = fit(theta, y[:, todo], method=method, delta=delta[todo], lam=0.0, **options)
+        coef[:, todo] = res.coef
         r = y[:, todo] - theta @ res.coef
         new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(r), lower[todo])
         change = np.abs(new - delta[todo]) / delta[todo]
         delta[todo] = new
         todo = todo[change >= rtol]
-    return float(delta[0]) if one_d else delta
+    out = float(delta[0]) if one_d else delta
+    return (out, coef) if return_coef else out
 
 
 def check_huber_method(method: str, what: str) -> str:

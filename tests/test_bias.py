@@ -313,3 +313,72 @@ def test_each_state_keeps_the_noise_the_equations_it_enters_allow():
     # a state that no equation carries keeps its measured noise
     coef[1, 1] = 0.0
     np.testing.assert_allclose(state_noise_factors(noise, coef, np.array([1e-3, 1e-3])), [1e-3, 1])
+
+
+def test_library_noise_stored_by_columns_computes_what_the_dense_arrays_do():
+    # Each state's noise stored on the columns that depend on it: every quantity the
+    # selection reads is the one the dense (m, p) arrays give.
+    from robust_sindy.selection.bias import LibraryNoise, carried_noise, library_noise
+
+    rng = np.random.default_rng(3)
+    m, p = 300, 12
+    dense = []
+    for k in range(3):
+        a = np.zeros((m, p))
+        on = rng.choice(p, 4 + k, replace=False)
+        a[:, on] = rng.normal(size=(m, on.size))
+        dense.append(a)
+    noise = LibraryNoise.of(dense)
+    assert len(noise) == 3 and noise.shape == (m, p)
+    assert sum(c.size for c in noise.cols) == 4 + 5 + 6
+    np.testing.assert_array_equal(np.stack(noise.dense()), np.stack(dense))
+    coef = rng.normal(size=(p, 2))
+    expected = np.sqrt(sum((a @ coef) ** 2 for a in dense))
+    np.testing.assert_allclose(noise.carried(coef), expected, rtol=1e-12)
+    np.testing.assert_allclose(carried_noise(noise, coef[:, 0]), expected[:, 0], rtol=1e-12)
+    np.testing.assert_allclose(noise.gram(), sum(a.T @ a for a in dense), rtol=1e-12, atol=1e-12)
+    theta = rng.normal(size=(m, p))
+    columns, along = library_noise(noise, theta)
+    columns_d, along_d = library_noise(dense, theta)
+    np.testing.assert_allclose(columns, columns_d, rtol=1e-12)
+    assert along == pytest.approx(along_d, rel=1e-10)
+    keep = rng.random(p) < 0.5
+    np.testing.assert_array_equal(
+        np.stack(noise.terms(keep).dense()), np.stack([a[:, keep] for a in dense])
+    )
+    rows = rng.random(m) < 0.3
+    np.testing.assert_array_equal(
+        np.stack(noise.rows(rows).dense()), np.stack([a[rows] for a in dense])
+    )
+    np.testing.assert_allclose(
+        np.stack(noise.scaled([1.0, 2.0, 0.5]).dense()),
+        np.stack([f * a for f, a in zip([1.0, 2.0, 0.5], dense, strict=True)]),
+    )
+    with pytest.raises(ValueError, match="noise"):
+        LibraryNoise.of([np.zeros((m, p)), np.zeros((m, p + 1))])
+
+
+def test_library_noise_of_a_many_state_library_takes_a_few_libraries_of_memory():
+    # A degree-2 library of n states: each state enters about 2 / n of the columns, so
+    # the noise of all states is about twice the library, not n times; its values are
+    # sigma_k dTheta/dx_k / scale, here checked against the exact derivative.
+    from types import SimpleNamespace
+
+    from robust_sindy.selection.bias import noise_columns
+
+    rng = np.random.default_rng(0)
+    n, m = 12, 200
+    x = rng.normal(size=(m, n))
+    library = PolynomialLibrary(degree=2).fit(x)
+    theta = library.transform(x)
+    scale = np.sqrt(np.mean(theta**2, axis=0))
+    sigma = rng.uniform(0.01, 0.1, size=n)
+    noise = noise_columns(library, x, SimpleNamespace(scale=sigma, repaired=x), scale)
+    stored = sum(v.size for v in noise.values)
+    assert stored <= 2.5 * theta.size  # n Theta = 12 Theta dense
+    names = library.get_feature_names()
+    j = names.index("x3*x7")
+    k = 3
+    c = list(noise.cols[k]).index(j)
+    np.testing.assert_allclose(noise.values[k][:, c], sigma[k] * x[:, 7] / scale[j], rtol=1e-6)
+    assert j not in noise.cols[5]

@@ -49,6 +49,35 @@ def test_auto_delta_recovers_the_gaussian_scale_under_20_percent_gross_outliers(
     assert abs(scale - sigma) <= 0.2 * sigma
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_auto_delta_started_from_a_nearby_pilot_lands_where_a_cold_start_does(seed, monkeypatch):
+    # The row screen's pilots start delta's iteration from the last pilot's (delta,
+    # coef) on nearly the same samples: one refit instead of several, the same delta
+    # within the iteration's tolerance.
+    from robust_sindy import fitting
+
+    rng = np.random.default_rng(seed)
+    m = 2000
+    theta = rng.normal(size=(m, 8))
+    y = theta @ rng.normal(size=(8, 2)) + 0.3 * rng.normal(size=(m, 2))
+    bad = rng.choice(m, m // 5, replace=False)
+    y[bad] += rng.normal(scale=15.0, size=(bad.size, 2))
+    refits = []
+    original = fitting.fit
+    monkeypatch.setattr(fitting, "fit", lambda *a, **k: refits.append(1) or original(*a, **k))
+    cold, coef = auto_delta(theta, y, return_coef=True)
+    n_cold = len(refits)
+    assert coef.shape == (8, 2)
+    keep = np.ones(m, dtype=bool)
+    keep[rng.choice(m, 20, replace=False)] = False  # the next pilot: a few samples fewer
+    refits.clear()
+    warm = auto_delta(theta[keep], y[keep], start=(cold, coef))
+    n_warm = len(refits)
+    again = auto_delta(theta[keep], y[keep])
+    np.testing.assert_allclose(warm, again, rtol=0.03)
+    assert n_warm < n_cold
+
+
 @pytest.mark.parametrize("seed", range(2))
 def test_warm_path_matches_cold_fits(seed):
     theta, y = random_problem(seed + 10)
@@ -202,6 +231,48 @@ def test_select_recovers_a_sparse_model_under_gross_outliers(criterion):
     assert np.all(sel.lam == sel.path.lams[sel.index, [0, 1]])
 
 
+@pytest.mark.parametrize("seed, compiled", [(0, True), (1, False), (2, False)])
+def test_a_path_stops_where_its_proposals_reach_their_limit(seed, compiled, monkeypatch):
+    # Many terms, a sparse truth: past the point where the selection stage proposes
+    # the limit's support (the stage of the unpenalised fit), the rest of the path is
+    # not used (nor solved, point by point; the compiled walk solves every point at
+    # once), and what is chosen is what the whole path would have chosen.
+    from robust_sindy.selection import criteria
+    from robust_sindy.solvers import driver
+
+    monkeypatch.setattr(driver, "USE_KERNEL", compiled)
+
+    rng = np.random.default_rng(seed)
+    m, p = 1500, 40
+    theta = rng.normal(size=(m, p)) + 0.3 * rng.normal(size=(m, 1))
+    coef = np.zeros((p, 3))
+    for k in range(3):
+        coef[rng.choice(p, 3, replace=False), k] = rng.choice([-1, 1], 3) * rng.uniform(0.5, 2, 3)
+    y = theta @ coef + 0.05 * rng.normal(size=(m, 3))
+    y[rng.choice(m, 100, replace=False)] += 10.0
+    sel = select(theta, y, subsets=False)
+    used, walked = np.isfinite(sel.scores), sel.path.walked
+    assert np.array_equal(sel.support, coef != 0)
+    assert used.sum() < 0.5 * used.size  # most of the (dense) path is not used
+    assert walked.all() if compiled else np.array_equal(walked, used)
+    for k in range(3):
+        n_used = int(used[:, k].sum())
+        assert used[:n_used, k].all()  # a prefix of the grid
+        if not compiled:
+            assert np.all(sel.path.coef[n_used:, :, k] == 0)
+            assert np.all(np.isnan(sel.path.kkt[n_used:, k]))
+    # The whole path, every point through the same stage and the same criterion.
+    full = path(theta, y, sel.delta, n_lams=used.shape[0])
+    assert full.walked.all()
+    stage = criteria._Stage(theta, y, sel.delta, 0.005, "admm", None, {}, [{}, {}, {}])
+    candidates = criteria._stage_all(stage, full.coef)
+    limit = criteria._Walk(stage, used.shape[0]).limit
+    tau = criteria.correlation_time(criteria.huber_psi(y - theta @ limit, sel.delta), None)
+    scores = criteria._scores(theta, y, candidates, full.walked, sel.delta, tau)
+    best = candidates[criteria._pick(scores), :, range(3)].T
+    np.testing.assert_array_equal(best != 0, sel.support)
+
+
 def _lorenz_problem(seed):
     lorenz = Lorenz()
     data = lorenz.generate()
@@ -232,7 +303,19 @@ def test_screen_flags_nothing_on_clean_data():
     lorenz = Lorenz()
     data = lorenz.generate(t_end=5.0)
     theta = lorenz.fitted_library().transform(data.x)
-    assert not screen_rows(theta, data.x_dot).outliers.any()
+    s = screen_rows(theta, data.x_dot)
+    assert not s.outliers.any()
+    # The first pilot leaves out what the start left out (nothing): stable at once.
+    assert s.converged and s.rounds == 1
+
+
+def test_a_start_that_left_out_exactly_the_outliers_is_stable_after_one_pilot():
+    _, noisy, lorenz = _lorenz_problem(0)
+    theta = lorenz.fitted_library().transform(noisy.x)
+    first = screen_rows(theta, noisy.x_dot)
+    again = screen_rows(theta, noisy.x_dot, start=~first.outliers)
+    assert np.array_equal(again.outliers, first.outliers)
+    assert again.converged and again.rounds == 1
 
 
 def test_leverage_corrected_residuals_deleted_for_suspect_samples():

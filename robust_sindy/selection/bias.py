@@ -32,6 +32,7 @@ from .significance import VISIBLE, robust_t
 __all__ = [
     "BIAS_MARGIN",
     "NOISE_SLACK",
+    "LibraryNoise",
     "carried_noise",
     "drop_biased_terms",
     "first_order_bias",
@@ -55,38 +56,167 @@ NOISE_SLACK = 4.0
 _MEDIAN_CHI2_1 = 0.454936423119572
 
 
-def noise_columns(library, z, temporal, theta_scale) -> list[np.ndarray] | None:
+class LibraryNoise:
+    """The noise that each state's measurement noise puts in the library columns, first
+    order, at every sample: per state ``k`` the matrix ``N_k = sigma_k dTheta/dx_k``
+    (m, p), stored on the columns that depend on that state only (``cols[k]``, with
+    ``values[k]`` of shape (m, len(cols[k]))): a degree-2 polynomial library of n states
+    has about 2 / n of its columns depend on each, so the noise of all states takes
+    about twice the memory of the library, not n times.
+
+    Parameters
+    ----------
+    p : int
+        Columns of the library.
+    cols : list of ndarray of int
+        Per state, the columns that depend on it.
+    values : list of ndarray (m, len(cols[k]))
+        Per state, its noise in those columns at every sample.
+    """
+
+    def __init__(self, p: int, cols, values):
+        self.p = int(p)
+        self.cols = [np.asarray(c, dtype=int) for c in cols]
+        self.values = [np.asarray(v, dtype=float) for v in values]
+        if len(self.cols) != len(self.values) or any(
+            v.ndim != 2 or v.shape[1] != c.size for c, v in zip(self.cols, self.values, strict=True)
+        ):
+            raise ValueError("noise: one (m, len(cols[k])) array of values per state's columns")
+
+    @classmethod
+    def of(cls, noise) -> LibraryNoise | None:
+        """``noise`` as a :class:`LibraryNoise`: as it is, or from one dense (m, p)
+        array per state (their all-zero columns left out); None stays None."""
+        if noise is None or isinstance(noise, LibraryNoise):
+            return noise
+        arrays = [np.asarray(a, dtype=float) for a in noise]
+        if not arrays or any(a.ndim != 2 or a.shape != arrays[0].shape for a in arrays):
+            raise ValueError("noise must be a list of (m, p) arrays of one shape, one per state")
+        cols = [np.flatnonzero(np.any(a != 0, axis=0)) for a in arrays]
+        return cls(arrays[0].shape[1], cols, [a[:, c] for a, c in zip(arrays, cols, strict=True)])
+
+    def __len__(self) -> int:
+        return len(self.values)
+
+    @property
+    def shape(self) -> tuple[int, int]:
+        """``(m, p)``: samples and library columns of each state's noise."""
+        return (self.values[0].shape[0] if self.values else 0, self.p)
+
+    def dense(self) -> list[np.ndarray]:
+        """One (m, p) array per state."""
+        out = []
+        for c, v in zip(self.cols, self.values, strict=True):
+            a = np.zeros((v.shape[0], self.p))
+            a[:, c] = v
+            out.append(a)
+        return out
+
+    def rows(self, index) -> LibraryNoise:
+        """The samples ``index`` (a boolean mask or indices)."""
+        return LibraryNoise(self.p, self.cols, [v[index] for v in self.values])
+
+    def map_rows(self, transform) -> LibraryNoise:
+        """``transform`` (an array (m, c) to one (r, c), column by column) applied to
+        each state's values: the noise of other rows made of these samples."""
+        return LibraryNoise(self.p, self.cols, [transform(v) for v in self.values])
+
+    def terms(self, keep) -> LibraryNoise:
+        """The library columns ``keep`` (a boolean mask over the p columns)."""
+        keep = np.asarray(keep, dtype=bool)
+        position = np.cumsum(keep) - 1
+        cols, values = [], []
+        for c, v in zip(self.cols, self.values, strict=True):
+            on = keep[c]
+            cols.append(position[c[on]])
+            values.append(v[:, on])
+        return LibraryNoise(int(keep.sum()), cols, values)
+
+    def scaled(self, factors) -> LibraryNoise:
+        """Each state's noise times its factor."""
+        factors = np.broadcast_to(np.asarray(factors, dtype=float), (len(self),))
+        return LibraryNoise(
+            self.p, self.cols, [f * v for f, v in zip(factors, self.values, strict=True)]
+        )
+
+    def per_state(self, coef) -> list[np.ndarray]:
+        """``N_k @ coef`` per state, (m,) or (m, n) for ``coef`` (p,) or (p, n)."""
+        coef = np.asarray(coef, dtype=float)
+        return [v @ coef[c] for c, v in zip(self.cols, self.values, strict=True)]
+
+    def carried(self, coef) -> np.ndarray:
+        """``sqrt(sum_k (N_k @ coef)^2)``: the standard deviation of the noise the
+        states put in ``Theta @ coef`` at every sample, first order."""
+        coef = np.asarray(coef, dtype=float)
+        total = np.zeros((self.shape[0], *coef.shape[1:]))
+        for part in self.per_state(coef):
+            total += part**2
+        return np.sqrt(total)
+
+    def gram(self) -> np.ndarray:
+        """``sum_k N_k^T N_k`` (p, p)."""
+        out = np.zeros((self.p, self.p))
+        for c, v in zip(self.cols, self.values, strict=True):
+            out[np.ix_(c, c)] += v.T @ v
+        return out
+
+    def column_mean_square(self) -> np.ndarray:
+        """``sum_k mean_i N_k[i, j]^2`` per column ``j`` (p,)."""
+        out = np.zeros(self.p)
+        for c, v in zip(self.cols, self.values, strict=True):
+            out[c] += np.mean(v**2, axis=0)
+        return out
+
+    def along(self, directions) -> np.ndarray:
+        """``sum_k |N_k d|^2`` for each row ``d`` of ``directions`` (r, p)."""
+        directions = np.asarray(directions, dtype=float)
+        out = np.zeros(directions.shape[0])
+        for c, v in zip(self.cols, self.values, strict=True):
+            out += np.sum((v @ directions[:, c].T) ** 2, axis=0)
+        return out
+
+
+def noise_columns(library, z, temporal, theta_scale) -> LibraryNoise | None:
     """The noise of each state carried through the standardised library, first order,
     at every sample: ``sigma_k dTheta/dx_k / theta_scale`` per state ``k`` (``sigma_k``
     measured by the ``temporal`` screen, the derivative by central differences of the
-    fitted ``library`` at its inputs ``z`` with the states repaired); None without the
-    screen."""
+    fitted ``library`` at its inputs ``z`` with the states repaired), on the columns
+    that depend on each state; None without the screen."""
     if temporal is None or not np.all(np.isfinite(temporal.scale)):
         return None
     base = z.copy()
     n = temporal.scale.size
     base[:, :n] = temporal.repaired
-    out = []
+    cols, values = [], []
+    p = 0
     for k, sigma in enumerate(temporal.scale):
         step = 1e-4 * max(float(np.sqrt(np.mean(base[:, k] ** 2))), np.finfo(float).tiny)
         up, down = base.copy(), base.copy()
         up[:, k] += step
         down[:, k] -= step
-        grad = (library.transform(up) - library.transform(down)) / (2 * step)
-        out.append(sigma * grad / theta_scale)
-    return out
+        grad = library.transform(up)
+        grad -= library.transform(down)
+        p = grad.shape[1]
+        on = np.flatnonzero(np.any(grad != 0, axis=0))
+        cols.append(on)
+        scale = np.broadcast_to(np.asarray(theta_scale, dtype=float), (p,))[on]
+        values.append(grad[:, on] * (sigma / (2 * step)) / scale)
+        del grad
+    return LibraryNoise(p, cols, values)
 
 
 def library_noise(noise, theta_kept) -> tuple[np.ndarray, float]:
-    """The library noise (:func:`noise_columns`) per column relative to its root mean
-    square, and along the least-excited direction of the standardised library
-    ``theta_kept``; NaN without the temporal screen, which measures the noise."""
+    """The library noise (:class:`LibraryNoise`, or one (m, p) array per state) per
+    column relative to its root mean square, and along the least-excited direction of
+    the standardised library ``theta_kept``; NaN without the temporal screen, which
+    measures the noise."""
     p = theta_kept.shape[1]
     if noise is None:
         return np.full(p, np.nan), float("nan")
+    noise = LibraryNoise.of(noise)
     _, sing, vt = np.linalg.svd(theta_kept, full_matrices=False)
-    columns = sum(np.mean(a**2, axis=0) for a in noise)
-    along = sum(np.sum((a @ vt.T) ** 2, axis=0) for a in noise)
+    columns = noise.column_mean_square()
+    along = noise.along(vt)
     rms = np.sqrt(np.mean(theta_kept**2, axis=0))
     columns = np.sqrt(columns) / np.where(rms > 0, rms, 1.0)
     # Exactly degenerate directions (a constant state, duplicated terms) carry no
@@ -96,15 +226,17 @@ def library_noise(noise, theta_kept) -> tuple[np.ndarray, float]:
 
 
 def noise_gram(noise_columns) -> np.ndarray:
-    """``sum_k N_k^T N_k`` for the library noise per state, ``N_k = sigma_k G_k`` (m, p)."""
-    return sum(a.T @ a for a in noise_columns)
+    """``sum_k N_k^T N_k`` for the library noise per state, ``N_k = sigma_k G_k`` (m, p)
+    (a :class:`LibraryNoise` or one dense array per state)."""
+    return LibraryNoise.of(noise_columns).gram()
 
 
 def carried_noise(noise_columns, coef) -> np.ndarray:
     """The standard deviation (m,) of the noise that the states' noise puts in an
     equation's residuals at every sample, first order: ``sqrt(sum_k (N_k xi)^2)`` for
-    the library noise per state ``N_k`` (m, p) and coefficients ``xi`` (p,)."""
-    return np.sqrt(sum((a @ coef) ** 2 for a in noise_columns))
+    the library noise per state ``N_k`` (m, p) and coefficients ``xi`` (p,), or (m, n)
+    for ``xi`` (p, n)."""
+    return LibraryNoise.of(noise_columns).carried(coef)
 
 
 def residual_noise_factor(residual, carried) -> float:
@@ -141,7 +273,9 @@ def state_noise_factors(noise, coef, factors) -> np.ndarray:
     bound over the equations it enters counts, capped at 1 (1 for a state no
     equation carries, whose noise no residual shows).
     """
-    carried = np.array([[np.sum((a @ c) ** 2) for c in coef.T] for a in noise])  # (n_states, n)
+    noise = LibraryNoise.of(noise)
+    coef = np.asarray(coef, dtype=float)
+    carried = np.array([np.sum(part**2, axis=0) for part in noise.per_state(coef)])  # (states, n)
     total = carried.sum(axis=0)
     out = np.ones(len(noise))
     for k in range(len(noise)):

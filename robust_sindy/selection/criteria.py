@@ -20,6 +20,7 @@ from .subsets import best_subsets
 __all__ = [
     "CRITERIA",
     "MIN_BIC_MARGIN",
+    "STABLE_POINTS",
     "Selection",
     "blocked_folds",
     "information_criterion",
@@ -96,9 +97,11 @@ class Selection:
     index : ndarray of int, shape (n,)
         Chosen position on the path per column.
     scores : ndarray, shape (L, n)
-        The criterion at every path point (lower is better).
+        The criterion at every path point (lower is better); with
+        ``criterion="bic"``, ``nan`` past the point where the column's path stopped
+        (see :func:`select`).
     candidates : ndarray, shape (L, p, n)
-        The selection stage's refit at every path point.
+        The selection stage's refit at every path point (zero past the stop).
     support : ndarray of bool, shape (p, n)
     path : Path
     criterion : str
@@ -149,31 +152,101 @@ class Selection:
         )
 
 
-def _stage_all(theta, y, path_coef, delta, tol, method, solver, options, caches=None):
-    """Selection stage at every path point, refits shared between identical supports
-    (``caches``: one dict per column, support to refit, filled here)."""
-    L, _, n = path_coef.shape
+class _Stage:
+    """The selection stage of each column, its refits shared between identical supports
+    (``caches``: one dict per column, support to refit)."""
+
+    def __init__(self, theta, y, delta, tol, method, solver, options, caches):
+        self.theta, self.y, self.delta, self.tol = theta, y, delta, tol
+        self.method, self.solver, self.options, self.caches = method, solver, options, caches
+        self.col = np.linalg.norm(theta, axis=0)
+        self.ynorm = np.linalg.norm(y, axis=0)
+
+    def refit(self, k, keep):
+        """Column ``k``'s unpenalised Huber refit on the terms ``keep``."""
+        key = keep.tobytes()
+        if key not in self.caches[k]:
+            self.caches[k][key] = refit_column(
+                self.theta, self.y[:, k], keep, self.delta[k], self.method, self.solver,
+                self.options,
+            )  # fmt: skip
+        return self.caches[k][key]
+
+    def column(self, k, coef):
+        """The stage on column ``k`` from the coefficients ``coef`` (p,)."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            return select_column(
+                coef, self.tol, STAGE_ROUNDS, self.col, self.ynorm[k],
+                lambda keep: self.refit(k, keep), self.caches[k],
+            )  # fmt: skip
+
+
+def _stage_all(stage: _Stage, path_coef):
+    """Selection stage at every path point (L, p, n)."""
     out = np.zeros_like(path_coef)
-    col = np.linalg.norm(theta, axis=0)
-    ynorm = np.linalg.norm(y, axis=0)
-    caches = [{} for _ in range(n)] if caches is None else caches
-    for k in range(n):
-        cache = caches[k]
+    for k in range(path_coef.shape[2]):
+        for i in range(path_coef.shape[0]):
+            out[i, :, k] = stage.column(k, path_coef[i, :, k])
+    return out
 
-        def refit(keep, k=k):
-            return refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
 
-        for i in range(L):
-            out[i, :, k] = select_column(
-                path_coef[i, :, k], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache
-            )
+#: A column's path stops once its selection stage has proposed the limit (the stage of
+#: the unpenalised fit) at this many consecutive points past the limit's size.
+STABLE_POINTS = 2
+
+
+class _Walk:
+    """The selection stage along a path as it is walked (``until`` of :func:`path`).
+
+    As ``lam`` falls the path tends to the unpenalised fit on every term, and the
+    stage's proposal to the stage of that fit (``limit``).  Once a column's point has
+    more terms than the limit and its proposal has been the limit's support at
+    :data:`STABLE_POINTS` consecutive points, the rest of its path is not walked: the
+    points still to come are the densest, and by far the most expensive, and they
+    would propose the same support again.  ``candidates`` (L, p, n) and ``used`` (L, n)
+    are the proposals at the points walked."""
+
+    def __init__(self, stage: _Stage, n_points: int):
+        theta, y = stage.theta, stage.y
+        p, n = theta.shape[1], y.shape[1]
+        every = np.any(theta != 0, axis=0)
+        self.stage = stage
+        self.limit = np.stack([stage.column(k, stage.refit(k, every)) for k in range(n)], 1)
+        self.candidates = np.zeros((n_points, p, n))
+        self.used = np.zeros((n_points, n), dtype=bool)
+        self.run = np.zeros(n, dtype=int)
+
+    def until(self, i, coef, cols):
+        done = np.zeros(cols.size, dtype=bool)
+        for a, k in enumerate(cols):
+            c = self.stage.column(k, coef[:, k])
+            self.candidates[i, :, k] = c
+            self.used[i, k] = True
+            on, limit = c != 0, self.limit[:, k] != 0
+            past = np.count_nonzero(coef[:, k]) > np.count_nonzero(limit)
+            self.run[k] = self.run[k] + 1 if past and np.array_equal(on, limit) else 0
+            done[a] = self.run[k] >= STABLE_POINTS
+        return done
+
+
+def _scores(theta, y, candidates, used, delta, tau):
+    """The BIC (:func:`information_criterion`) of the candidates ``used`` (L, n),
+    ``nan`` at the others; each from its own terms' columns."""
+    L, _, n = candidates.shape
+    sigma, penalty = _bic_terms(theta.shape[0], delta, tau)
+    out = np.full((L, n), np.nan)
+    for i, k in zip(*np.nonzero(used), strict=True):
+        on = np.flatnonzero(candidates[i, :, k])
+        loss = huber(y[:, k] - theta[:, on] @ candidates[i, on, k], delta[k]).sum()
+        out[i, k] = 2.0 * loss / sigma[k] ** 2 / tau[k] + on.size * penalty[k]
     return out
 
 
 def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solver, options, caches):
     """Best-subset candidates of every equation (see ``Selection.subsets``): supports
     ranked under the Huber weights of ``reference`` (p, n), each refitted and put
-    through the selection stage (``caches`` as in :func:`_stage_all`), then scored by
+    through the selection stage (``caches`` as in :class:`_Stage`), then scored by
     the BIC with correlation times ``tau``.
 
     A support is skipped when it cannot score below ``best`` (n,), the best score so
@@ -324,9 +397,9 @@ def _cv_scores(theta, y, lams, delta_k, tol, n_folds, method, solver, progress, 
                 solver=solver,
                 **path_options,
             )
-            cand = _stage_all(
-                theta[train], y[train], sub.coef, delta_k, tol, method, solver, path_options
-            )
+            stage = _Stage(theta[train], y[train], delta_k, tol, method, solver, path_options,
+                           [{} for _ in range(y.shape[1])])  # fmt: skip
+            cand = _stage_all(stage, sub.coef)
         r = y[test][None, :, :] - np.einsum("mp,lpn->lmn", theta[test], cand)
         scores += huber(r, delta_k).mean(axis=1) / len(folds)
     return scores
@@ -360,8 +433,16 @@ def select(
        :func:`blocked_folds`, scored by the mean Huber loss on the held-out block
        (squared error on held-out data would be dominated by the outliers).
 
+    With ``criterion="bic"`` a column's path stops once the stage has proposed the
+    support of its limit (the stage of the unpenalised fit on every term) at
+    :data:`STABLE_POINTS` consecutive points denser than that support: the points
+    left are the densest and the most expensive, and as ``lam`` falls the proposal
+    tends to that limit (``nan`` scores past the stop; where the path is solved point
+    by point, those points are not solved at all: ``path.walked``).  The limit is also
+    the most complete model: its residuals give the correlation time of the BIC.
+
     4. ``criterion="bic"`` (and ``subsets``): the best few supports of every size up
-       to a budget, by weighted least squares under the Huber weights of the densest
+       to a budget, by weighted least squares under the Huber weights of the limit
        candidate (:func:`robust_sindy.selection.subsets.best_subsets`), go through the
        same stage and criterion: a lasso path may never propose the true support of
        strongly collinear terms, and a margin among its own candidates does not show
@@ -426,6 +507,13 @@ def select(
     # single fit (its Newton finish certifies most points at once; near-LAD points on
     # exact data may need thousands); the refits keep the full budget.
     path_options = {**pilot_budget(method), **options}
+    # The stage's refits score candidate supports: most are wrong, their residuals far
+    # beyond delta, and such near-LAD fits are the slowest to certify; they get the
+    # path's budget (the refit of the support finally chosen is certified by the caller:
+    # HuberSINDy refits it with the full budget).
+    caches: list[dict] = [{} for _ in range(y.shape[1])]
+    stage = _Stage(theta, y, delta_k, tol, method, solver, path_options, caches)
+    walk = _Walk(stage, n_lams) if criterion == "bic" else None
     with warnings.catch_warnings():
         # Uncertified path points only propose supports; the refits of the selection
         # stage are certified on their own, and the chosen point is checked below.
@@ -439,28 +527,18 @@ def select(
             method=method,
             solver=solver,
             progress=progress,
+            until=None if walk is None else walk.until,
             **path_options,
         )
-    # The stage's refits score candidate supports: most are wrong, their residuals far
-    # beyond delta, and such near-LAD fits are the slowest to certify; they get the
-    # path's budget (the refit of the support finally chosen is certified by the caller:
-    # HuberSINDy refits it with the full budget).
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        caches: list[dict] = [{} for _ in range(y.shape[1])]
-        candidates = _stage_all(
-            theta, y, full.coef, delta_k, tol, method, solver, path_options, caches
-        )
+        if walk is None:
+            candidates = _stage_all(stage, full.coef)
     if criterion == "bic":
-        # Correlation time of the residuals of the densest refit (the most complete model).
-        densest = candidates[-1]
+        candidates = walk.candidates
+        # Correlation time of the residuals of the most complete model: the selection
+        # stage of the unpenalised fit, the proposals' limit.
+        densest = walk.limit
         tau = correlation_time(huber_psi(y - theta @ densest, delta_k), segments)
-        scores = np.stack(
-            [
-                information_criterion(theta, y, candidates[i], delta_k, tau=tau)
-                for i in range(len(candidates))
-            ]
-        )
+        scores = _scores(theta, y, candidates, walk.used, delta_k, tau)
     else:
         scores = _cv_scores(theta, y, full.lams, delta_k, tol, n_folds, method, solver, progress,
                             path_options)  # fmt: skip
@@ -474,7 +552,7 @@ def select(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             subset_coef, subset_scores, subset_size = _subset_candidates(
-                theta, y, candidates[-1], delta_k, tau, tol,
+                theta, y, densest, delta_k, tau, tol,
                 np.nanmin(scores, axis=0), method, solver, path_options, caches,
             )  # fmt: skip
     pooled = np.concatenate([candidates, subset_coef])

@@ -56,6 +56,10 @@ class Path:
     delta, lambda_max : ndarray, shape (n,)
     solve_time : float
         Seconds for the whole path.
+    walked : ndarray of bool, shape (L, n)
+        The points solved: all of them, unless the caller stopped a column early
+        (``until`` of :func:`path`); a point not walked has zero coefficients, ``nan``
+        objective and KKT, and is not certified.
     """
 
     lams: np.ndarray
@@ -67,12 +71,19 @@ class Path:
     delta: np.ndarray
     lambda_max: np.ndarray
     solve_time: float
+    walked: np.ndarray | None = None
+
+    def __post_init__(self):
+        if self.walked is None:
+            self.walked = np.ones(self.lams.shape, dtype=bool)
 
     def __repr__(self) -> str:
+        walked = "" if self.walked.all() else f"walked {int(self.walked.sum())}, "
+        kkt = np.max(self.kkt[self.walked], initial=0.0)
         return (
-            f"Path({self.lams.shape[0]} points x {self.lams.shape[1]} columns, "
-            f"certified {int(self.converged.sum())}/{self.converged.size}, "
-            f"max kkt={self.kkt.max():.1e}, solve_time={self.solve_time:.3g}s)"
+            f"Path({self.lams.shape[0]} points x {self.lams.shape[1]} columns, {walked}"
+            f"certified {int(self.converged.sum())}/{int(self.walked.sum())}, "
+            f"max kkt={kkt:.1e}, solve_time={self.solve_time:.3g}s)"
         )
 
 
@@ -130,6 +141,7 @@ def path(
     solver: str | None = None,
     warm_start: bool = True,
     progress: bool = False,
+    until=None,
     **options,
 ) -> Path:
     """Solve the Huber-Lasso along a decreasing grid of ``lam``.
@@ -160,6 +172,12 @@ def path(
     warm_start : bool
     progress : bool
         Show a progress bar.
+    until : callable, optional
+        ``until(i, coef, cols)``, called after point ``i`` with its coefficients
+        (p, n) and the columns solved there (int array), returns a boolean array over
+        ``cols``: the columns it marks are not solved at later points
+        (``Path.walked``).  Where the compiled iteration walks the whole grid at once,
+        it is called on every point in order after the walk, with the same columns.
     **options
         Options of :func:`robust_sindy.fit` for the chosen method (not ``warm_start``).
 
@@ -186,8 +204,14 @@ def path(
     grid = _grid(lmax, lams, n_lams, eps, n)
     L, p = grid.shape[0], theta.shape[1]
     coef = np.zeros((L, p, n))
-    obj, kkt = np.zeros((L, n)), np.zeros((L, n))
+    obj, kkt = np.full((L, n), np.nan), np.full((L, n), np.nan)
     conv = np.zeros((L, n), dtype=bool)
+    active = np.ones(n, dtype=bool)
+
+    def stop_after(i, cols):  # the caller's verdict on the columns solved at point i
+        if until is not None and cols.size:
+            active[cols[np.asarray(until(i, coef[i], cols), dtype=bool)]] = False
+
     t0 = time.perf_counter()
     if method == "admm":
         if solver is not None:
@@ -199,42 +223,65 @@ def path(
         # Warm-started, the compiled iteration walks the whole grid (each point from the
         # last one's solution, last pass and inlier Gram matrix); every point is then
         # certified here in the user's units, as a single fit is.
-        walked = None
+        walk = None
         if warm_start:
-            walked = driver.solve_path(theta, y, delta_k, grid, prepared=prepared, **opts)
+            walk = driver.solve_path(theta, y, delta_k, grid, prepared=prepared, **opts)
 
         def accepted(solved, kkt, rel_gap):  # the solver's verdict and the certificate's
             return solved & ((kkt <= opts["tol"]) | (rel_gap <= opts["gap_tol"]))
 
-        if walked is not None:
-            coef[:] = walked[0]
+        if walk is not None:
+            coef[:] = walk[0]
             obj[:], kkt[:], rel_gap = _certify_points(
                 theta, y, coef, delta_k, grid, col_norms, progress
             )
-            conv[:] = accepted(walked[1], kkt, rel_gap)
+            conv[:] = accepted(walk[1], kkt, rel_gap)
+            walked = np.ones((L, n), dtype=bool)
+            for i in range(L):
+                stop_after(i, np.flatnonzero(active))
         else:
+            walked = np.zeros((L, n), dtype=bool)
             previous = None
+            psi = np.zeros_like(y)
             for i in tqdm(range(L), desc="lam path", disable=not progress, leave=False):
+                cols = np.flatnonzero(active)
+                if cols.size == 0:
+                    break
+                start = None if previous is None else (previous[:, cols], psi[:, cols])
                 out = driver.solve(
-                    theta, y, delta_k, grid[i], warm_start=previous, prepared=prepared, **opts
-                )
-                cert = certify(theta, y, out.coef, delta_k, grid[i][None, :], col_norms)
-                coef[i], obj[i], kkt[i] = out.coef, cert.objective, cert.kkt
-                conv[i] = accepted(out.converged, cert.kkt, cert.rel_gap)
+                    theta, y[:, cols], delta_k[cols], grid[i, cols], warm_start=start,
+                    prepared=prepared, **opts,
+                )  # fmt: skip
+                cert = certify(
+                    theta, y[:, cols], out.coef, delta_k[cols], grid[i, cols][None, :],
+                    col_norms,
+                )  # fmt: skip
+                coef[i][:, cols], obj[i, cols], kkt[i, cols] = out.coef, cert.objective, cert.kkt
+                conv[i, cols] = accepted(out.converged, cert.kkt, cert.rel_gap)
+                walked[i, cols] = True
                 if warm_start:
-                    previous = (out.coef, cert.psi)
+                    previous, psi[:, cols] = coef[i], cert.psi
+                stop_after(i, cols)
     else:
+        walked = np.zeros((L, n), dtype=bool)
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             for i in tqdm(range(L), desc="lam path", disable=not progress, leave=False):
-                res = fit(theta, y, "cvxpy", delta_k, grid[i], solver=solver, **options)
-                coef[i], obj[i], kkt[i] = res.coef, res.objective, res.kkt
-                conv[i] = res.column_converged
+                cols = np.flatnonzero(active)
+                if cols.size == 0:
+                    break
+                res = fit(theta, y[:, cols], "cvxpy", delta_k[cols], grid[i, cols],
+                          solver=solver, **options)  # fmt: skip
+                coef[i][:, cols], obj[i, cols], kkt[i, cols] = res.coef, res.objective, res.kkt
+                conv[i, cols] = res.column_converged
+                walked[i, cols] = True
+                stop_after(i, cols)
     elapsed = time.perf_counter() - t0
-    if not conv.all():
+    bad = walked & ~conv
+    if bad.any():
         warnings.warn(
-            f"{int((~conv).sum())} of {conv.size} path points were not certified "
-            f"(largest relative KKT {kkt[~conv].max():.1e}); see Path.converged. "
+            f"{int(bad.sum())} of {int(walked.sum())} path points were not certified "
+            f"(largest relative KKT {kkt[bad].max():.1e}); see Path.converged. "
             "Try method='cvxpy' or a larger delta.",
             ConvergenceWarning,
             stacklevel=2,
@@ -249,4 +296,5 @@ def path(
         delta=delta_k,
         lambda_max=lmax,
         solve_time=elapsed,
+        walked=walked,
     )

@@ -18,6 +18,7 @@ import numpy as np
 
 from ..core.scaling import Standardizer
 from ..timeseries.trajectories import segments_of
+from .bias import LibraryNoise
 
 __all__ = ["Problem"]
 
@@ -36,8 +37,8 @@ class Problem:
         The column scales (of all samples, kept or not).
     segments : list of slice
         Each trajectory's slice among these samples.
-    noise : list of ndarray (m, p) or None
-        Per state, the noise of every standardised library column at every sample
+    noise : LibraryNoise or None
+        Per state, the noise of the standardised library columns at every sample
         (:func:`~robust_sindy.selection.bias.noise_columns`).
     theta_s, y_s : ndarray
         ``theta`` and ``y`` standardised.
@@ -47,7 +48,7 @@ class Problem:
     y: np.ndarray
     scaler: Standardizer
     segments: list
-    noise: list | None = None
+    noise: LibraryNoise | None = None
     theta_s: np.ndarray = field(init=False, repr=False)
     y_s: np.ndarray = field(init=False, repr=False)
 
@@ -67,7 +68,7 @@ class Problem:
 
     def keep(self, mask: np.ndarray) -> Problem:
         """The samples ``mask`` (bool, m), with the same scales."""
-        noise = None if self.noise is None else [a[mask] for a in self.noise]
+        noise = None if self.noise is None else self.noise.rows(mask)
         return Problem(
             self.theta[mask], self.y[mask], self.scaler, segments_of(mask, self.segments), noise
         )

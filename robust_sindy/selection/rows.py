@@ -19,8 +19,9 @@ from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
 from ..core.validation import as_float_array, check_int, check_positive, check_problem
 from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fit
+from ..solvers.newton import inlier_gram
 from ..timeseries.trajectories import segments_of
-from .bias import carried_noise, residual_noise_factor
+from .bias import LibraryNoise, carried_noise, residual_noise_factor
 from .lam_path import pilot_budget
 from .problem import Problem
 
@@ -120,13 +121,33 @@ def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
     Deleted residuals for every sample would be too strict where there are few samples
     per term, whose good samples all have large leverage."""
     out = r.copy()
+    rows = np.flatnonzero(keep)
+    a = theta[rows]
+    norms = np.linalg.norm(a, axis=0)
+    a /= np.where(norms > 0, norms, 1.0)  # a leverage does not depend on column scales
+    gram = a.T @ a  # shared: each column's inlier Gram matrix is formed from it
     for k in range(r.shape[1]):
-        inl = keep & (np.abs(r[:, k]) <= delta[k])
-        a = theta[inl]
-        lev = np.einsum("ij,ji->i", a, np.linalg.pinv(a.T @ a, hermitian=True) @ a.T)
+        inl = np.abs(r[rows, k]) <= delta[k]
+        lev = _leverages(a[inl], inlier_gram(a, gram, inl[:, None].astype(float))[0])
+        at = rows[inl]
         rest = np.maximum(1.0 - lev, np.finfo(float).eps)
-        out[inl, k] = r[inl, k] / np.where(suspect[inl], rest, np.sqrt(rest))
+        out[at, k] = r[at, k] / np.where(suspect[at], rest, np.sqrt(rest))
     return out
+
+
+def _leverages(a, gram):
+    """``a_i H^+ a_i^T`` for each row of ``a``, ``H = gram = a^T a``: by a Cholesky
+    factor where its condition estimate shows that the pseudo-inverse would cut no
+    eigenvalue (the same value, a fraction of the work), else by the pseudo-inverse."""
+    eps = np.finfo(float).eps
+    c, info = scipy.linalg.lapack.dpotrf(gram, lower=True, clean=True)
+    if info == 0:
+        norm = np.abs(gram).sum(axis=0).max()
+        rcond, info = scipy.linalg.lapack.dpocon(c, norm, uplo="L")
+        if info == 0 and rcond >= 10.0 * gram.shape[0] * eps:
+            z = scipy.linalg.solve_triangular(c, a.T, lower=True, check_finite=False)
+            return np.einsum("ij,ij->j", z, z)
+    return np.einsum("ij,ij->i", a @ np.linalg.pinv(gram, hermitian=True), a)
 
 
 def _excitation_gain(theta: np.ndarray, start: np.ndarray) -> float:
@@ -185,44 +206,66 @@ class _Pilots:
         if with_local and self.segments is not None:
             local = _segment_local_scale(r, self.segments, self.half, self.first)
             bound = np.maximum(bound, local)
-        if self.noise:
+        if self.noise is not None:
             carried = carried_noise(self.noise, coef)
             factor = [residual_noise_factor(r[:, k], carried[:, k]) for k in range(r.shape[1])]
             bound = np.maximum(bound, np.sqrt(factor) * carried)
         return bound
 
-    def pilot(self, keep):
+    def pilot(self, keep, start=None):
         """The unpenalised Huber pilot on ``keep``: coefficients and residuals of every
         sample, centred on the kept ones' median, those of the kept samples corrected for
-        their leverage (:func:`_leverage_corrected`)."""
+        their leverage (:func:`_leverage_corrected`), and its ``delta``.  ``start``, the
+        ``(delta, coef)`` of a pilot on nearly the same samples, starts its choice of
+        ``delta`` (:func:`~robust_sindy.selection.auto_delta`)."""
         theta, y, method, budget = self.theta, self.y, self.method, self.budget
+        theta_k, y_k = theta[keep], y[keep]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            delta = np.atleast_1d(auto_delta(theta[keep], y[keep], method=method, **budget))
-            coef = fit(theta[keep], y[keep], method, delta, 0.0, **budget).coef
+            delta, start = auto_delta(
+                theta_k, y_k, method=method, return_coef=True, start=start, **budget
+            )
+            delta = np.atleast_1d(delta)
+            if method == "admm":
+                budget = {**budget, "warm_start": start}
+            coef = fit(theta_k, y_k, method, delta, 0.0, **budget).coef
             coef = coef.reshape(theta.shape[1], -1)
+        del theta_k
         r = y - theta @ coef
         r = r - np.median(r[keep], axis=0)
-        return coef, _leverage_corrected(theta, r, keep, delta, ~self.first)
+        return coef, _leverage_corrected(theta, r, keep, delta, ~self.first), delta
 
     def scaled(self, r, scale, coef):
         """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
         return gross_ratio(r, self.bound_of(r, scale, coef), self.cutoff)
 
     def iterate(self, keep):
-        """Refit on the samples kept until the flags are stable (after the free rounds
-        flags are only added: no oscillation)."""
+        """Refit on the samples kept until the flags are stable (after the free rounds,
+        or once the flags repeat an earlier round's, flags are only added: no
+        oscillation).  The pilot is a function of the samples kept, so flags that repeat
+        an earlier round's cycle for ever; they become the union of the cycle at once,
+        and flags that leave out exactly the samples ``keep`` left out are stable at
+        once (the next pilot would be the same fit)."""
         p = self.theta.shape[1]
-        flags, converged, done, scale = None, False, 0, np.zeros(self.y.shape[1])
+        flags, converged, done, scale = ~keep, False, 0, np.zeros(self.y.shape[1])
+        history: list[np.ndarray] = []
+        monotone, start = False, None
         for done in range(1, self.rounds + 1):
-            coef, r = self.pilot(keep)
+            # From the second round on, delta's iteration starts from the last pilot's.
+            coef, r, delta = self.pilot(keep, start)
+            start = (delta, coef)
             scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), SCALE_FLOOR * self.rms)
             new = self.scaled(r, scale, coef) > 1
-            if flags is not None and done > _FREE_ROUNDS:
+            if done > 1 and (monotone or done > _FREE_ROUNDS):
                 new |= flags
-            if flags is not None and np.array_equal(new, flags):
+            if np.array_equal(new, flags):
                 converged = True
                 break
+            seen = [j for j, old in enumerate(history) if np.array_equal(old, new)]
+            if seen:
+                new = np.logical_or.reduce(history[seen[0] :])
+                monotone = True
+            history.append(new)
             flags = new
             keep = ~flags
             if keep.sum() <= p:
@@ -239,7 +282,7 @@ class _Pilots:
         step = max(p, int(np.ceil(_COMPETE_MARGIN * m)))
         best, best_n = keep.copy(), -1
         for _ in range(50):
-            coef, r = self.pilot(keep)
+            coef, r, _ = self.pilot(keep)
             z = self.scaled(r, scale0, coef)
             n_ok = int((z <= 1).sum())
             if n_ok > best_n:
@@ -327,7 +370,7 @@ def screen_rows(
     max_rounds : int
     method : {"admm", "cvxpy"}
         Solver of the pilot fits.
-    noise : list of array_like (m, p), optional
+    noise : LibraryNoise or list of array_like (m, p), optional
         Per state, the first-order noise of every library column at every sample (the
         state's noise level times the column's derivative by that state).
     alternative : tuple (ndarray of int (k,), ndarray (k, p)), optional
@@ -357,8 +400,9 @@ def screen_rows(
     check_huber_method(method, "the pilot fits")
     m, p = theta.shape
     if noise is not None:
-        noise = [as_float_array(a, "noise", (2,)) for a in noise]
-        if any(a.shape != (m, p) for a in noise):
+        if not isinstance(noise, LibraryNoise):
+            noise = LibraryNoise.of([as_float_array(a, "noise", (2,)) for a in noise])
+        if noise.shape != (m, p):
             raise ValueError(f"noise must be a list of arrays of shape ({m}, {p})")
     if start is None:
         keep = np.ones(m, dtype=bool)
@@ -478,7 +522,7 @@ def screen_samples(
     if not screen:
         return RowScreen(np.ones(m, dtype=bool), None)
     keep = ~unresolved
-    noise = problem.noise if measured and problem.noise else None
+    noise = problem.noise if measured else None
     other = None
     if alternative is not None:
         at, rows = np.asarray(alternative[0], dtype=int), alternative[1]
@@ -491,7 +535,7 @@ def screen_samples(
         start=~entry_flags.any(axis=1)[keep],
         segments=segments_of(keep, problem.segments),
         method=method,
-        noise=None if noise is None else [a[keep] for a in noise],
+        noise=None if noise is None else noise.rows(keep),
         alternative=other,
     )
     outliers, start, swapped = (np.zeros(m, dtype=bool) for _ in range(3))

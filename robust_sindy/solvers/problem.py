@@ -87,7 +87,12 @@ class ScaledColumns:
         top = float(np.max(np.abs(self.theta))) if self.theta.size else 1.0
         self._c = 1.0 / top if 0 < top < np.inf else 1.0
         self.shape = self.theta.shape
-        self.T = _Transposed(self)
+
+    @property
+    def T(self) -> _Transposed:
+        # Made on demand: a stored back-reference would make a cycle, and the library
+        # (a copy of the samples fitted) would wait for the cyclic garbage collector.
+        return _Transposed(self)
 
     def __matmul__(self, x):
         if x.ndim == 1:

@@ -287,22 +287,24 @@ class WeakRows:
 
     def noise(self, noise_columns, data: Trajectories):
         """The noise of the weak rows' library columns, per state, from that of the
-        samples (``noise_columns``, per state m x p): noise at different samples is
-        independent, so a row's has variance ``sum_i (w_i phi_r(t_i))^2 N_i^2``; it is
-        taken as ``sqrt(sum_i (w_i phi_r)^2)`` times the ``(w_i phi_r)^2``-weighted mean
-        of the samples' noise columns (exact where those are constant over the
+        samples (``noise_columns``, a
+        :class:`~robust_sindy.selection.bias.LibraryNoise`): noise at different samples
+        is independent, so a row's has variance ``sum_i (w_i phi_r(t_i))^2 N_i^2``; it
+        is taken as ``sqrt(sum_i (w_i phi_r)^2)`` times the ``(w_i phi_r)^2``-weighted
+        mean of the samples' noise columns (exact where those are constant over the
         support, and linear in them, as the strong form's are)."""
         if noise_columns is None:
             return None
-        out = []
-        for a in noise_columns:
+
+        def rows_of(a):
             rows = []
             for seg, w in zip(data.segments, self.weights, strict=True):
                 w2 = w**2
                 total = np.maximum(w2.sum(axis=1, keepdims=True), np.finfo(float).tiny)
                 rows.append(np.sqrt(total) * (w2 @ a[seg]) / total)
-            out.append(np.vstack(rows))
-        return out
+            return np.vstack(rows)
+
+        return noise_columns.map_rows(rows_of)
 
 
 def weak_rows(
