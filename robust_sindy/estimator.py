@@ -97,6 +97,29 @@ def _is_auto(value) -> bool:
     return isinstance(value, str) and value == "auto"
 
 
+class _Stages:
+    """With ``progress``, a bar over the stages of a fit that names the one running (a
+    fit of many states spends minutes in its row screen before the path's own bar)."""
+
+    COUNT = 6
+
+    def __init__(self, progress: bool):
+        from tqdm import tqdm
+
+        self.bar = tqdm(total=self.COUNT, desc="identify", disable=not progress, leave=False)
+        self.started = False
+
+    def start(self, name: str) -> None:
+        if self.started:
+            self.bar.update()
+        self.started = True
+        self.bar.set_postfix_str(name)
+
+    def close(self) -> None:
+        self.bar.update()
+        self.bar.close()
+
+
 @dataclass(frozen=True)
 class Identification:
     """Every stage's outcome of one in-memory fit (what :meth:`HuberSINDy._set_fitted`
@@ -171,7 +194,9 @@ class HuberSINDy(BaseEstimator):
     solver_options : dict, optional
         Keyword options of :func:`robust_sindy.fit` (``max_iter``, ``tol``, ...).
     progress : bool
-        Show progress bars for the ``lam`` path.
+        Show progress bars: the stage a fit is in (temporal screen, formulation and
+        derivatives, row screen, δ, λ and the support, final selection, diagnostics)
+        and the ``lam`` path.
     derivative_window : {"auto", "fixed"}
         The window of ``differentiation="robust"``: chosen per state from the data (5
         to 65 samples), or 5 samples (the fourth-order central difference).
@@ -341,6 +366,8 @@ class HuberSINDy(BaseEstimator):
         names = data.feature_names()
         library = clone(self.library) if self.library is not None else PolynomialLibrary()
         missing = Missing.of(data)
+        stages = _Stages(self.progress)
+        stages.start("temporal screen")
         if self.screen:
             temporal = temporal_screen(data.x, data.t)
         else:  # missing readings are filled all the same (and said so)
@@ -359,6 +386,7 @@ class HuberSINDy(BaseEstimator):
         if temporal is not None:
             outlying = temporal.flags & ~missing.states
         flags = outlying | missing.suspect
+        stages.start("formulation and derivatives")
         weak, why = (
             self._weak_rows(data, temporal, library, z, missing) if allow_weak else (None, "")
         )
@@ -397,6 +425,7 @@ class HuberSINDy(BaseEstimator):
         pilot = huber_method(self.method)
         # A missing measured derivative: no target (the weak form uses none).
         absent = missing.derivative_rows if weak is None else np.zeros(problem.shape[0], bool)
+        stages.start("row screen")
         rows = screen_samples(
             problem, row_flags, deriv.unresolved | absent, measured=deriv.measured,
             method=pilot, screen=self.screen, alternative=alternative,
@@ -408,6 +437,7 @@ class HuberSINDy(BaseEstimator):
         if absent.any():
             rows = RowScreen(rows.keep & ~absent, rows.screening)
         kept = problem.keep(rows.keep)
+        stages.start("delta, lambda and the support")
         floor = noise_floor(kept, find_aliases=_is_auto(self.lam), selection_tol=self.selection_tol)
         options = dict(self.solver_options or {})
         choice = choose_delta_lam(
@@ -419,6 +449,7 @@ class HuberSINDy(BaseEstimator):
             kept, choice, method=self.method, solver=self.solver, options=options,
             threshold=self.threshold, refit=self.refit,
         )  # fmt: skip
+        stages.start("final selection")
         if choice.selection is not None:
             final = final_selection(
                 kept, floor.design, fitted.coef, fitted.result.delta,
@@ -441,6 +472,7 @@ class HuberSINDy(BaseEstimator):
             )
             final = replace(final, coef=refit.coef)
         covered = None if weak is None else weak.covered(rows.keep)
+        stages.start("diagnostics")
         report = diagnose(
             kept=kept, floor=floor, choice=choice, fitted=fitted, final=final, rows=rows,
             entry_flags=outlying, row_flags=row_flags, deriv=deriv, missing=missing,
@@ -448,6 +480,7 @@ class HuberSINDy(BaseEstimator):
             method=pilot, weak=weak, covered=covered, formulation=why, constrained=refit,
             bounded=_boundedness(library, final.coef, data.n_states),
         )  # fmt: skip
+        stages.close()
         return Identification(
             data, library, theta, temporal, deriv, problem, rows, floor, choice, fitted, final,
             report, weak, covered,

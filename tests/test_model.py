@@ -195,3 +195,16 @@ def test_pysindy_optimizer_chooses_delta_and_lam_by_default():
     truth = lorenz.true_coef(full=True).T != 0
     np.testing.assert_array_equal(model.coefficients() != 0, truth)
     assert opt.result_.converged
+
+
+def test_progress_names_the_stage_a_fit_is_in(capsys):
+    from robust_sindy.systems import Lorenz
+
+    data = Lorenz().generate(t_end=5.0)
+    rs.HuberSINDy(progress=True).fit(data.x, data.t, x_dot=data.x_dot)
+    err = capsys.readouterr().err
+    stages = ("temporal screen", "row screen", "delta, lambda and the support", "diagnostics")
+    at = [err.find(stage) for stage in stages]
+    assert min(at) >= 0 and at == sorted(at)  # each named, in the order they run
+    rs.HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot)
+    assert "identify" not in capsys.readouterr().err  # silent by default
