@@ -264,7 +264,7 @@ def test_a_path_stops_where_its_proposals_reach_their_limit(seed, compiled, monk
     # The whole path, every point through the same stage and the same criterion.
     full = path(theta, y, sel.delta, n_lams=used.shape[0])
     assert full.walked.all()
-    stage = criteria._Stage(theta, y, sel.delta, 0.005, "admm", None, {}, [{}, {}, {}])
+    stage = criteria._Stage(theta, y, sel.delta, 0.005, "admm", None, {})
     candidates = criteria._stage_all(stage, full.coef)
     limit = criteria._Walk(stage, used.shape[0]).limit
     tau = criteria.correlation_time(criteria.huber_psi(y - theta @ limit, sel.delta), None)

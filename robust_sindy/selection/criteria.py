@@ -54,8 +54,14 @@ def information_criterion(theta, xdot, coef, delta, scale=None, tau=None) -> np.
     tau = np.ones(n) if tau is None else np.broadcast_to(np.asarray(tau, float), (n,))
     sigma, penalty = _bic_terms(theta.shape[0], delta_k, tau, scale)
     loss = huber(y - theta @ coef, delta_k).sum(axis=0)
-    out = 2.0 * loss / sigma**2 / tau + np.count_nonzero(coef, axis=0) * penalty
+    out = _bic(loss, np.count_nonzero(coef, axis=0), sigma, penalty, tau)
     return float(out[0]) if one_d else out
+
+
+def _bic(loss, size, sigma, penalty, tau):
+    """:func:`information_criterion` from a Huber loss and a number of terms (or a
+    lower bound on it from a lower bound on the loss)."""
+    return 2.0 * loss / sigma**2 / tau + size * penalty
 
 
 def _bic_terms(m, delta, tau, scale=None):
@@ -156,9 +162,10 @@ class _Stage:
     """The selection stage of each column, its refits shared between identical supports
     (``caches``: one dict per column, support to refit)."""
 
-    def __init__(self, theta, y, delta, tol, method, solver, options, caches):
+    def __init__(self, theta, y, delta, tol, method, solver, options):
         self.theta, self.y, self.delta, self.tol = theta, y, delta, tol
-        self.method, self.solver, self.options, self.caches = method, solver, options, caches
+        self.method, self.solver, self.options = method, solver, options
+        self.caches: list[dict] = [{} for _ in range(y.shape[1])]
         self.col = np.linalg.norm(theta, axis=0)
         self.ynorm = np.linalg.norm(y, axis=0)
 
@@ -239,15 +246,15 @@ def _scores(theta, y, candidates, used, delta, tau):
     for i, k in zip(*np.nonzero(used), strict=True):
         on = np.flatnonzero(candidates[i, :, k])
         loss = huber(y[:, k] - theta[:, on] @ candidates[i, on, k], delta[k]).sum()
-        out[i, k] = 2.0 * loss / sigma[k] ** 2 / tau[k] + on.size * penalty[k]
+        out[i, k] = _bic(loss, on.size, sigma[k], penalty[k], tau[k])
     return out
 
 
-def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solver, options, caches):
+def _subset_candidates(stage: _Stage, reference, tau, best):
     """Best-subset candidates of every equation (see ``Selection.subsets``): supports
     ranked under the Huber weights of ``reference`` (p, n), each refitted and put
-    through the selection stage (``caches`` as in :class:`_Stage`), then scored by
-    the BIC with correlation times ``tau``.
+    through the selection ``stage`` (its refits shared with the path's), then scored
+    by the BIC with correlation times ``tau``.
 
     A support is skipped when it cannot score below ``best`` (n,), the best score so
     far: its Huber loss is at least that of the unpenalised fit on every term, and at
@@ -256,10 +263,9 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
     penalty.  Sizes the first bound rules out are not searched at all (``subset_size``
     is then smaller than the budget allows).
     """
+    theta, y, delta = stage.theta, stage.y, stage.delta
     m, p = theta.shape
     n = y.shape[1]
-    col = np.linalg.norm(theta, axis=0)
-    ynorm = np.linalg.norm(y, axis=0)
     # The criterion's own terms: the bounds below are on its scores.
     sigma, penalty = _bic_terms(m, delta, tau)
     every = np.any(theta != 0, axis=0)
@@ -269,37 +275,28 @@ def _subset_candidates(theta, y, reference, delta, tau, tol, best, method, solve
     for k in range(n):
         r = np.abs(y[:, k] - theta @ reference[:, k])
         weights = np.minimum(1.0, delta[k] / np.maximum(r, np.finfo(float).tiny))
-        cache = caches[k]
 
-        def refit(keep, k=k):
-            return refit_column(theta, y[:, k], keep, delta[k], method, solver, options)
+        def bic(loss, size, k=k):
+            return _bic(loss, size, sigma[k], penalty[k], tau[k])
 
-        def score(c, k=k):
-            return information_criterion(theta, y[:, k], c, delta[k], tau=tau[k])
-
-        if every.tobytes() not in cache:
-            cache[every.tobytes()] = refit(every)
-        dense = cache[every.tobytes()]
+        dense = stage.refit(k, every)
         # No support fits better than every term together: the dual bound at the dense
         # refit's residuals (valid even if that refit stopped early).
         whole = _loss_floor(whole_library, y[:, k], None, delta[k], y[:, k] - theta @ dense, basis)
-        floor = 2.0 * whole / sigma[k] ** 2 / tau[k]
+        floor = bic(whole, 0)
         top = best[k]
         # Sizes whose penalty alone takes them past the best score are not searched.
         reach = np.ceil((top - floor) / penalty[k]) - 1 if np.isfinite(top) else p
         masks, sizes[k] = best_subsets(theta, y[:, k], weights, max_size=reach)
         found[k] = []
         for mask in masks:
-            if floor + mask.sum() * penalty[k] >= top:
+            if bic(whole, mask.sum()) >= top:
                 continue
             dual = _loss_floor(theta[:, mask], y[:, k], weights, delta[k])
-            if 2.0 * dual / sigma[k] ** 2 / tau[k] + mask.sum() * penalty[k] >= top:
+            if bic(dual, mask.sum()) >= top:
                 continue
-            key = mask.tobytes()
-            if key not in cache:
-                cache[key] = refit(mask)
-            c = select_column(cache[key], tol, STAGE_ROUNDS, col, ynorm[k], refit, cache)
-            found[k].append((c, score(c)))
+            c = stage.column(k, stage.refit(k, mask))
+            found[k].append((c, information_criterion(theta, y[:, k], c, delta[k], tau=tau[k])))
             top = min(top, found[k][-1][1])
     count = max((len(v) for v in found.values()), default=0)
     cands = np.zeros((count, p, n))
@@ -397,8 +394,7 @@ def _cv_scores(theta, y, lams, delta_k, tol, n_folds, method, solver, progress, 
                 solver=solver,
                 **path_options,
             )
-            stage = _Stage(theta[train], y[train], delta_k, tol, method, solver, path_options,
-                           [{} for _ in range(y.shape[1])])  # fmt: skip
+            stage = _Stage(theta[train], y[train], delta_k, tol, method, solver, path_options)
             cand = _stage_all(stage, sub.coef)
         r = y[test][None, :, :] - np.einsum("mp,lpn->lmn", theta[test], cand)
         scores += huber(r, delta_k).mean(axis=1) / len(folds)
@@ -511,8 +507,7 @@ def select(
     # beyond delta, and such near-LAD fits are the slowest to certify; they get the
     # path's budget (the refit of the support finally chosen is certified by the caller:
     # HuberSINDy refits it with the full budget).
-    caches: list[dict] = [{} for _ in range(y.shape[1])]
-    stage = _Stage(theta, y, delta_k, tol, method, solver, path_options, caches)
+    stage = _Stage(theta, y, delta_k, tol, method, solver, path_options)
     walk = _Walk(stage, n_lams) if criterion == "bic" else None
     with warnings.catch_warnings():
         # Uncertified path points only propose supports; the refits of the selection
@@ -552,9 +547,8 @@ def select(
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
             subset_coef, subset_scores, subset_size = _subset_candidates(
-                theta, y, densest, delta_k, tau, tol,
-                np.nanmin(scores, axis=0), method, solver, path_options, caches,
-            )  # fmt: skip
+                stage, densest, tau, np.nanmin(scores, axis=0)
+            )
     pooled = np.concatenate([candidates, subset_coef])
     pooled_scores = np.concatenate([scores, subset_scores])
     chosen = _pick(pooled_scores)

@@ -19,7 +19,7 @@ from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
 from ..core.validation import as_float_array, check_int, check_positive, check_problem
 from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fit
-from ..solvers.newton import inlier_gram
+from ..solvers.newton import conditioned_cholesky, inlier_gram
 from ..timeseries.trajectories import segments_of
 from .bias import LibraryNoise, carried_noise, residual_noise_factor
 from .lam_path import pilot_budget
@@ -138,15 +138,12 @@ def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
 def _leverages(a, gram):
     """``a_i H^+ a_i^T`` for each row of ``a``, ``H = gram = a^T a``: by a Cholesky
     factor where its condition estimate shows that the pseudo-inverse would cut no
-    eigenvalue (the same value, a fraction of the work), else by the pseudo-inverse."""
-    eps = np.finfo(float).eps
-    c, info = scipy.linalg.lapack.dpotrf(gram, lower=True, clean=True)
-    if info == 0:
-        norm = np.abs(gram).sum(axis=0).max()
-        rcond, info = scipy.linalg.lapack.dpocon(c, norm, uplo="L")
-        if info == 0 and rcond >= 10.0 * gram.shape[0] * eps:
-            z = scipy.linalg.solve_triangular(c, a.T, lower=True, check_finite=False)
-            return np.einsum("ij,ij->j", z, z)
+    eigenvalue (the same value, a fraction of the work), else by the pseudo-inverse
+    (whose default cut, ``max(shape) * eps``, is the one tested)."""
+    c = conditioned_cholesky(gram, gram.shape[0] * np.finfo(float).eps)
+    if c is not None:
+        z = scipy.linalg.solve_triangular(c, a.T, lower=True, check_finite=False)
+        return np.einsum("ij,ij->j", z, z)
     return np.einsum("ij,ij->i", a @ np.linalg.pinv(gram, hermitian=True), a)
 
 

@@ -81,7 +81,14 @@ from .problem import (
     column_objective,
 )
 
-__all__ = ["GramCache", "NewtonRun", "line_search", "newton", "row_direction"]
+__all__ = [
+    "GramCache",
+    "NewtonRun",
+    "conditioned_cholesky",
+    "line_search",
+    "newton",
+    "row_direction",
+]
 
 
 #: A column has stalled when its KKT violation has not halved for this many steps while
@@ -338,17 +345,27 @@ CHOLESKY_SIZE = 48
 CHOLESKY_MARGIN = 10.0
 
 
-def _cholesky_solve(Mk: np.ndarray, b: np.ndarray):
-    """``Mk^-1 b`` by Cholesky where no eigenvalue of ``Mk`` can be near the cut: its
-    estimated reciprocal 1-norm condition number at least :data:`CHOLESKY_MARGIN` times
-    :data:`EIG_CUT` (for a symmetric matrix the 2-norm condition number is at most the
-    1-norm's, so the eigen-solver would cut nothing and solve the same system);
-    else ``None``."""
-    c, info = scipy.linalg.lapack.dpotrf(Mk, lower=True, clean=False)
+def conditioned_cholesky(M: np.ndarray, cut: float):
+    """The lower Cholesky factor of the symmetric ``M`` (its upper triangle not
+    cleaned) where no eigenvalue can be near the relative eigenvalue ``cut``: LAPACK's
+    estimate of the reciprocal 1-norm condition number at least
+    :data:`CHOLESKY_MARGIN` times ``cut`` (for a symmetric matrix the 2-norm condition
+    number is at most the 1-norm's, so an eigen-solver or pseudo-inverse with that cut
+    would cut nothing and give the same result); else ``None``."""
+    c, info = scipy.linalg.lapack.dpotrf(M, lower=True, clean=False)
     if info != 0:
         return None
-    rcond, info = scipy.linalg.lapack.dpocon(c, np.abs(Mk).sum(axis=0).max(), uplo="L")
-    if info != 0 or not rcond >= CHOLESKY_MARGIN * EIG_CUT:
+    rcond, info = scipy.linalg.lapack.dpocon(c, np.abs(M).sum(axis=0).max(), uplo="L")
+    if info != 0 or not rcond >= CHOLESKY_MARGIN * cut:
+        return None
+    return c
+
+
+def _cholesky_solve(Mk: np.ndarray, b: np.ndarray):
+    """``Mk^-1 b`` by Cholesky where no eigenvalue of ``Mk`` can be near the cut
+    :data:`EIG_CUT` (:func:`conditioned_cholesky`), else ``None``."""
+    c = conditioned_cholesky(Mk, EIG_CUT)
+    if c is None:
         return None
     out, info = scipy.linalg.lapack.dpotrs(c, b[:, None], lower=True)
     return out[:, 0] if info == 0 and np.all(np.isfinite(out)) else None
