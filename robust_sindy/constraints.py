@@ -3,7 +3,8 @@
 Each helper returns a :class:`~robust_sindy.core.constraints.LinearConstraints` for a
 coefficient matrix of shape (terms, equations); combine them with ``+`` and pass the
 result to :func:`robust_sindy.fit` (``constraints=``).  Terms are named as the library
-names them (``library.get_feature_names()``), equations by their index or by the name
+names them (``library.get_feature_names()``; PySINDy's names, ``"x0 x1"`` for a
+product, are read too), equations by their index or by the name
 of their state (``states``; by default the library's linear terms, so give ``states``
 or ``n_equations`` when the library has control inputs).
 
@@ -28,6 +29,7 @@ LinearConstraints(4 equalities, 0 inequalities on 6 terms x 2 equations)
 
 from __future__ import annotations
 
+import re
 from collections.abc import Sequence
 from itertools import combinations_with_replacement
 
@@ -47,7 +49,7 @@ __all__ = [
 def _states(names: Sequence[str], states, n_equations) -> list[str]:
     if states is None and n_equations is None:
         # The library's linear terms: the states, unless it has controls.
-        states = [f for f in names if f != "1" and "*" not in f and "^" not in f]
+        states = [f for f in names if f != "1" and not _PRODUCT.search(f) and "^" not in f]
         if not states:
             raise ValueError("give states (the names of the equations' states) or n_equations")
     if states is None:
@@ -58,13 +60,18 @@ def _states(names: Sequence[str], states, n_equations) -> list[str]:
     return states
 
 
+#: A product in a feature name: ``"x0*x1"`` here, ``"x0 x1"`` in PySINDy's libraries.
+_PRODUCT = re.compile(r"[*\s]+")
+
+
 def _monomial(name: str, states: list[str]) -> tuple[int, ...] | None:
-    """The state indices of a monomial name (``"x0*x1"``, ``"x2^2"``; sorted), or None
-    when the name is not a product of states (a constant, a control, a function)."""
+    """The state indices of a monomial name (``"x0*x1"`` or PySINDy's ``"x0 x1"``,
+    ``"x2^2"``; sorted), or None when the name is not a product of states (a constant,
+    a control, a function)."""
     if name == "1":
         return ()
     out = []
-    for part in name.split("*"):
+    for part in _PRODUCT.split(name.strip()):
         base, _, power = part.partition("^")
         if base not in states:
             return None

@@ -183,6 +183,9 @@ class Diagnostics:
         without); a warning says so above 1e-8, or when the constrained refit was not
         certified (``constraints_certified``).
     constraints_certified : bool
+    constrained_delta : ndarray (n,)
+        With ``constraints``, the Huber threshold of the model under them (measured on
+        the residuals of the constrained fit on every term; NaN without).
     repaired_rows : int
         Kept samples fitted with the library row of their repaired readings (the row
         screen's step 5: a glitch costs its entry, not its sample).
@@ -316,6 +319,7 @@ class Diagnostics:
     selected_terms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     constraint_residual: float = float("nan")
     constraints_certified: bool = True
+    constrained_delta: np.ndarray = None
     energy_residual: float = float("nan")
     trapping_eigenvalue: float = float("nan")
     repaired_rows: int = 0
@@ -433,6 +437,10 @@ class Diagnostics:
             lines.append(
                 f"  constraints: relative residual {self.constraint_residual:.1e}, refit "
                 + ("certified" if self.constraints_certified else "not certified")
+                + ", delta "
+                + np.array2string(
+                    self.constrained_delta, formatter={"float_kind": lambda v: f"{v:.3g}"}
+                )
             )
         problems = self.problems()
         lines += [f"  problem: {p}" for p in problems] if problems else ["  no problem found"]
@@ -881,6 +889,9 @@ def diagnose(
         selected_terms=np.count_nonzero(coef, axis=0),
         constraint_residual=float("nan") if constrained is None else constrained.residual,
         constraints_certified=True if constrained is None else constrained.converged,
+        constrained_delta=(
+            np.full(n, np.nan) if constrained is None else np.asarray(constrained.delta, float)
+        ),
         repaired_rows=(
             0
             if screening is None or screening.swapped is None

@@ -51,7 +51,7 @@ from .selection.choice import (
     huber_method,
     noise_floor,
 )
-from .selection.constrained import build_constraints, constrained_refit
+from .selection.constrained import build_constraints, constrained_selection
 from .selection.criteria import CRITERIA
 from .selection.final import FinalSelection, final_selection
 from .selection.problem import Problem
@@ -226,7 +226,8 @@ class HuberSINDy(BaseEstimator):
     library_ : BaseLibrary
         The fitted library; ``feature_names_`` are its input names (states, controls).
     delta_ : ndarray (n_targets,)
-        The Huber thresholds used.
+        The Huber thresholds used (with ``constraints``, the constrained model's,
+        ``diagnostics_.constrained_delta``).
     lam_ : ndarray (n_targets,) or (n_features, n_targets)
         The L1 weights used (with ``lam="auto"`` one weight per coefficient in user
         units: one per equation on standardised columns, ``selection_.lam``).
@@ -467,7 +468,7 @@ class HuberSINDy(BaseEstimator):
                 self.constraints, library.get_feature_names(), names[: data.n_states],
                 final.coef.shape,
             )  # fmt: skip
-            refit = constrained_refit(
+            refit = constrained_selection(
                 kept, final.coef, fitted.result.delta, con, method=self.method, solver=self.solver
             )
             final = replace(final, coef=refit.coef)
@@ -566,7 +567,12 @@ class HuberSINDy(BaseEstimator):
         self.selection_ = choice.selection
         self.path_ = None if choice.selection is None else choice.selection.path
         self.result_ = fitted.result
-        self.delta_ = fitted.result.delta
+        # The final model's threshold: under constraints, the constrained model's own.
+        self.delta_ = (
+            fitted.result.delta
+            if report.constrained_delta is None or np.isnan(report.constrained_delta).all()
+            else report.constrained_delta
+        )  # fmt: skip
         self.lam_ = fitted.result.lam
         self.pruned_ = report.pruned.copy()
         self.bias_ratio_ = report.bias_ratio.copy()

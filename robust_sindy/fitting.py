@@ -526,6 +526,13 @@ def _least_squares_kkt(theta, y, coef, method):
 HUBER_EFFICIENCY_CONSTANT = 1.345
 
 
+def delta_floor(y, floor: float = 1e-4) -> np.ndarray:
+    """The smallest threshold :func:`auto_delta` gives each column of ``y`` (m, n):
+    ``floor`` times its root mean square (1 for a column of zeros)."""
+    lower = floor * np.sqrt(np.mean(np.asarray(y) ** 2, axis=0))
+    return np.where(lower > 0, lower, 1.0)
+
+
 def auto_delta(
     theta,
     xdot,
@@ -583,8 +590,7 @@ def auto_delta(
     n_iter = check_int(n_iter, "n_iter", 1)
     if method not in ("admm", "cvxpy"):
         raise ValueError(f"method must be 'admm' or 'cvxpy' for the pilot fit; got {method!r}")
-    lower = floor * np.sqrt(np.mean(y**2, axis=0))
-    lower = np.where(lower > 0, lower, 1.0)
+    lower = delta_floor(y, floor)
     if start is None:
         coef = np.linalg.lstsq(theta, y, rcond=None)[0]
         delta = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(y - theta @ coef), lower)
@@ -643,12 +649,14 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
             theta, y, delta_k, lam_full, constraints, solver=solver_name, **options
         )
     else:
-        known = {"rho", "alpha", "max_iter", "eps", "tol", "check_every", "polish"}
+        known = {"rho", "alpha", "max_iter", "eps", "tol", "check_every", "polish", "warm_start"}
         _reject_unknown(options, known, "admm with constraints")
         tol = check_positive(options.get("tol", 1e-8), "tol")
+        warm = _warm_start(options.get("warm_start"), theta, y, one_d)
         out = constrained.solve_constrained_admm(
-            theta, y, delta_k, lam_full, constraints, **{**options, "tol": tol}
-        )
+            theta, y, delta_k, lam_full, constraints,
+            **{**options, "tol": tol, "warm_start": None if warm is None else warm[0]},
+        )  # fmt: skip
         solver_name = "admm"
     solve_time = time.perf_counter() - t0
     cert = out.certificate

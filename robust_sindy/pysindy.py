@@ -55,6 +55,15 @@ class HuberOptimizer(BaseOptimizer):
         Keyword options of :func:`robust_sindy.fit`.
     normalize_columns : bool
         PySINDy's column normalisation (the ADMM equilibrates columns itself).
+    constraints : LinearConstraints, optional
+        Linear constraints on the coefficients across equations
+        (:mod:`robust_sindy.constraints`), for a coefficient matrix of shape
+        ``(n_features, n_targets)``: build them from the PySINDy library's names, e.g.
+        ``rc.energy_preserving(library.get_feature_names(["x", "y", "z"]))``.  With a
+        fixed ``lam`` the penalised problem is solved under them; with ``lam="auto"``
+        the terms are selected as without them and then searched again under them
+        (:func:`robust_sindy.selection.constrained.constrained_selection`), as
+        :class:`robust_sindy.HuberSINDy` does.
     unbias : bool
         Default ``False``.  PySINDy's unbiasing refits the selected terms by ordinary
         least squares, which gives every outlier its full quadratic influence again and
@@ -79,6 +88,7 @@ class HuberOptimizer(BaseOptimizer):
         unbias: bool = False,
         copy_X: bool = True,
         initial_guess=None,
+        constraints=None,
     ):
         super().__init__(
             max_iter=1,
@@ -92,11 +102,12 @@ class HuberOptimizer(BaseOptimizer):
         self.method = method
         self.solver = solver
         self.solver_options = solver_options
+        self.constraints = constraints
 
     def _reduce(self, x, y):
         x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
         options = self.solver_options or {}
-        delta, lam, coef = self.delta, self.lam, None
+        delta, lam, coef, con = self.delta, self.lam, None, self.constraints
         if isinstance(lam, str) and lam == "auto":
             from .selection import auto_delta, select
 
@@ -111,6 +122,17 @@ class HuberOptimizer(BaseOptimizer):
             sel = select(th, ys, delta_s, method=self.method, solver=self.solver, **options)
             delta, lam = scaler.delta_to_user(sel.delta), scaler.lam_to_user(sel.lam)
             coef = scaler.coef_to_user(sel.coef)
+            if self.constraints is not None:
+                from .selection.constrained import constrained_selection, held_off_support
+                from .selection.problem import Problem
+
+                found = constrained_selection(
+                    Problem(x, y2, scaler, [slice(0, len(y2))]), coef, delta,
+                    self.constraints, method=self.method, solver=self.solver,
+                )  # fmt: skip
+                # The chosen support's constrained refit, over the whole library.
+                con = held_off_support(self.constraints, found.support)
+                delta, lam, coef = found.delta, 0.0, None
         res = fit(
             x,
             y,
@@ -118,6 +140,7 @@ class HuberOptimizer(BaseOptimizer):
             delta=delta,
             lam=lam,
             solver=self.solver,
+            constraints=con,
             **options,
         )
         self.result_ = res

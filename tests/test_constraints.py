@@ -172,6 +172,33 @@ def test_the_fast_path_agrees_with_the_reference_on_random_constrained_problems(
     _agree(*_random_problem(seed, m, p, n))
 
 
+@settings(
+    max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+)
+@given(
+    seed=st.integers(0, 10_000),
+    m=st.integers(40, 800),
+    p=st.integers(2, 8),
+    n=st.integers(1, 4),
+    log_delta=st.floats(-8.0, -4.0),
+    unpenalised=st.sampled_from(["all", "some"]),
+)
+def test_the_fast_path_agrees_where_nearly_every_residual_is_an_outlier(
+    seed, m, p, n, log_delta, unpenalised
+):
+    # The constrained refit's regime: no penalty (on every or some coefficients) and
+    # delta far below the residuals, so the problem is close to least absolute
+    # deviations and the inliers leave directions without curvature.
+    theta, y, _delta, lam, con = _random_problem(seed, m, p, n)
+    delta = float(np.abs(y).mean()) * np.exp(log_delta)
+    if unpenalised == "all":
+        lam = 0.0
+    else:
+        lam = np.where(np.random.default_rng(seed).random((p, n)) < 0.5, 0.0, lam)
+    fast, _ref = _agree(theta, y, delta, lam, con)
+    assert (np.abs(y - theta @ fast.coef) > delta).mean() > 0.5  # the regime is reached
+
+
 @pytest.mark.parametrize("spread, cy", [(1e6, 1.0), (1.0, 1e12), (1.0, 1e-12), (1e3, 1e-6)])
 def test_the_solutions_do_not_depend_on_the_units(spread, cy):
     # Library columns spread over `spread` and derivatives scaled by `cy`: both solvers
@@ -288,6 +315,31 @@ def test_tied_terms_are_selected_together():
     assert np.array_equal(tied_closure(grown, con), grown)
 
 
+def test_coefficient_groups_are_the_coefficients_that_share_constraints():
+    from robust_sindy.selection.constrained import coefficient_groups, held_at_zero
+
+    names = _names(3)
+    con = rc.energy_preserving(names)
+    groups, needed = coefficient_groups(con)
+    # Every coefficient in exactly one group; a quadratic coefficient with the others of
+    # its cubic monomial (1, 2 or 3 of them), a linear term or a constant alone.
+    flat = np.sort(np.concatenate(groups))
+    assert np.array_equal(flat, np.arange(30)) and not needed.any()
+    sizes = sorted(len(g) for g in groups)
+    assert sizes.count(1) == 3 * 4 + 3 and sizes.count(2) == 6 and sizes.count(3) == 1
+    # A coefficient fixed at a nonzero value must be selected; at zero it need not.
+    fixed = con + rc.fixed(names, "x1", "x0", 2.0) + rc.fixed(names, "x2", "x1", 0.0)
+    groups, needed = coefficient_groups(fixed)
+    at = {int(g[0]): bool(k) for g, k in zip(groups, needed, strict=True) if len(g) == 1}
+    assert at[names.index("x1")] and not at[10 + names.index("x2")]
+    # x0^2 in (x0)' alone makes the cubic x0^3: energy preservation holds it at zero.
+    support = np.zeros((10, 3), dtype=bool)
+    support[[names.index("x0^2"), names.index("x0")], 0] = True
+    support[names.index("x0*x1"), 0] = support[names.index("x0^2"), 1] = True
+    held = held_at_zero(con, support)
+    assert held[names.index("x0^2"), 0] and held.sum() == 1
+
+
 def test_huber_sindy_with_energy_preserving_constraints(tmp_path):
     t, x = _mean_field(0.01)
     with warnings.catch_warnings(record=True) as caught:
@@ -387,3 +439,60 @@ def test_boundedness_is_certified_by_a_trapping_region():
     coef = np.zeros((3, cubic.n_output_features_))
     coef[0, -1] = 1.0
     assert quadratic_parts(coef, cubic.powers_, 3) is None
+
+
+def _wake_within(model, tol=0.05):
+    """Whether ``model``, simulated from the cylinder wake's first sample, stays bounded
+    and gives the data's limit-cycle radius and shift-mode level within ``tol``."""
+    from robust_sindy.datasets import load_cylinder_wake
+
+    data = load_cylinder_wake()
+
+    def blowup(_t, v):
+        return 10 * np.abs(data.x).max() - np.abs(v).max()
+
+    blowup.terminal = True
+    sim = model.simulate(data.x[0], data.t, events=blowup)
+    if len(sim) < len(data.t):
+        return False
+    tail = data.t >= data.t[-1] - 50
+    radius = np.hypot(*sim[tail, :2].T).mean() / np.hypot(*data.x[tail, :2].T).mean()
+    level = sim[tail, 2].mean() / data.x[tail, 2].mean()
+    return abs(radius - 1) <= tol and abs(level - 1) <= tol
+
+
+def test_the_cylinder_wake_stays_bounded_with_energy_preserving_constraints():
+    # A published flow record, from the states alone: the unconstrained model decays to
+    # the steady flow; the energy-preserving one reproduces the limit cycle, certified
+    # bounded by a trapping region.
+    from robust_sindy.datasets import load_cylinder_wake
+
+    data = load_cylinder_wake()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        free = rs.HuberSINDy().fit(data.x, data.t)
+        model = rs.HuberSINDy(constraints="energy_preserving").fit(data.x, data.t)
+    assert not _wake_within(free)
+    d = model.diagnostics_
+    assert d.constraints_certified and d.energy_residual <= 1e-12
+    assert d.trapping_eigenvalue < 0
+    assert _wake_within(model)
+
+
+@pytest.mark.slow
+def test_the_cylinder_wake_with_glitches_stays_bounded_with_energy_preserving_constraints():
+    # 3 % of the entries moved by 5 standard deviations: every draw bounded and within
+    # 5 % (five of five in validation/cylinder_wake.py; four draws here).
+    from robust_sindy.datasets import load_cylinder_wake
+
+    data = load_cylinder_wake()
+    for seed in range(4):
+        rng = np.random.default_rng(100 + seed)
+        x = data.x.copy()
+        hit = rng.random(x.shape) < 0.03
+        x[hit] += 5 * rng.choice([-1.0, 1.0], hit.sum()) * np.broadcast_to(x.std(0), x.shape)[hit]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rs.IdentificationWarning)
+            model = rs.HuberSINDy(constraints="energy_preserving").fit(x, data.t)
+        assert model.diagnostics_.constraints_certified
+        assert _wake_within(model), seed

@@ -197,6 +197,32 @@ def test_pysindy_optimizer_chooses_delta_and_lam_by_default():
     assert opt.result_.converged
 
 
+def test_pysindy_optimizer_takes_linear_constraints():
+    ps = pytest.importorskip("pysindy")
+    from robust_sindy import constraints as rc
+    from robust_sindy.datasets import load_cylinder_wake
+    from robust_sindy.pysindy import HuberOptimizer
+
+    data = load_cylinder_wake()
+    library = ps.PolynomialLibrary(degree=2).fit(data.x)
+    names = library.get_feature_names(["a", "b", "s"])  # PySINDy's "a b" for products
+    con = rc.energy_preserving(names)
+    assert con.A_eq.shape[0] == 10
+    x_dot = np.gradient(data.x, data.t, axis=0)
+    for lam in ("auto", 1e-3):
+        opt = HuberOptimizer(lam=lam, constraints=con)
+        model = ps.SINDy(optimizer=opt, feature_library=ps.PolynomialLibrary(degree=2))
+        model.fit(data.x, t=data.t, x_dot=x_dot, feature_names=["a", "b", "s"])
+        coef = model.coefficients().T
+        assert opt.result_.converged and opt.result_.info["constraint_residual"] <= 1e-10
+        assert con.residual(coef) <= 1e-10
+        np.testing.assert_array_equal(coef, opt.result_.coef)
+    # Without the constraints the same fit does not conserve energy.
+    free = ps.SINDy(optimizer=HuberOptimizer(), feature_library=ps.PolynomialLibrary(degree=2))
+    free.fit(data.x, t=data.t, x_dot=x_dot)
+    assert con.residual(free.coefficients().T) > 1e-3
+
+
 def test_progress_names_the_stage_a_fit_is_in(capsys):
     from robust_sindy.systems import Lorenz
 

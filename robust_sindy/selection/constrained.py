@@ -1,16 +1,31 @@
-"""The constrained refit: the selected model made to meet linear constraints.
+"""Selection under constraints: the model made to meet linear constraints.
 
-``HuberSINDy(constraints=...)`` selects the terms as without constraints (the noise
-floor, the choice of delta and lambda, the final selection), then refits the selected
-terms under the constraints, over all equations at once
-(:func:`robust_sindy.fit` with ``constraints``, unpenalised, at the chosen delta):
+``HuberSINDy(constraints=...)`` first selects the terms as without constraints (the
+noise floor, the choice of delta and lambda, the final selection).  Then
+:func:`constrained_selection` searches again under the constraints, over all
+equations at once, for the support with the best information criterion:
 
-* **tied terms are selected together**: a constraint that involves a selected
-  coefficient brings in every coefficient it involves (repeated until nothing more
-  joins; e.g. energy preservation pairs ``x0*x2`` in ``(x0)'`` with ``x0^2`` in
-  ``(x2)'``);
-* every other coefficient is held at zero (one equality each);
-* the refit is certified by the constrained KKT conditions.
+* **tied terms are selected together**: coefficients that share a constraint form a
+  group (:func:`coefficient_groups`; e.g. energy preservation pairs ``x0*x2`` in
+  ``(x0)'`` with ``x0^2`` in ``(x2)'``), and a group enters or leaves as one.  The
+  search starts from the unconstrained selection with every group it touches
+  (:func:`tied_closure`);
+* each candidate support is refitted without penalty under the constraints at the
+  chosen delta (:func:`robust_sindy.fit` with ``constraints``, on the support's
+  columns; every other coefficient held at zero), certified by the constrained KKT
+  conditions;
+* the criterion is the robust BIC of the unconstrained selection
+  (:func:`robust_sindy.selection.criteria.information_criterion`: the Huber loss on
+  the scale ``delta / 1.345``, the residuals' correlation time, ``log(m / tau)`` per
+  term) summed over the equations, with one parameter fewer for each independent
+  equality the support's coefficients must meet;
+* groups are added or removed one at a time, the best change first, while the
+  criterion falls.  A constraint can make a term necessary that the unconstrained
+  selection had no reason to keep: a quadratic term tied to another equation's must be
+  balanced by a linear one, which then pays its way.
+
+Coefficients that the constraints hold at zero on the final support (an energy-
+preserving model has no ``x0^2`` in ``(x0)'``) are left out of it.
 """
 
 from __future__ import annotations
@@ -18,12 +33,29 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
+import scipy.sparse
+import scipy.sparse.csgraph
 
 from ..core.constraints import LinearConstraints
-from ..fitting import fit
+from ..core.losses import huber, huber_psi
+from ..core.scaling import robust_scale
+from ..core.statistics import correlation_time
+from ..fitting import HUBER_EFFICIENCY_CONSTANT, delta_floor, fit
 from .problem import Problem
 
-__all__ = ["ConstrainedRefit", "build_constraints", "constrained_refit", "tied_closure"]
+__all__ = [
+    "ConstrainedRefit",
+    "build_constraints",
+    "coefficient_groups",
+    "constrained_refit",
+    "constrained_selection",
+    "held_off_support",
+    "tied_closure",
+]
+
+#: Rounds of the constrained model's delta (as :func:`robust_sindy.auto_delta`'s: a
+#: refit and the robust scale of its residuals, until delta moves by less than 1 %).
+DELTA_ROUNDS = 5
 
 
 def build_constraints(spec, feature_names, states, shape) -> LinearConstraints:
@@ -62,44 +94,208 @@ def tied_closure(support: np.ndarray, constraints: LinearConstraints) -> np.ndar
         grown = new
 
 
+def coefficient_groups(constraints: LinearConstraints) -> tuple[list, np.ndarray]:
+    """The coefficients linked by shared constraints (connected components of the
+    coefficients and the rows that involve them), as lists of ``vec`` indices (every
+    coefficient in exactly one group), and whether each group must be selected (an
+    equality of its rows has a nonzero right-hand side, which zeros cannot meet)."""
+    size = constraints.n_terms * constraints.n_equations
+    rows = np.vstack([constraints.A_eq, constraints.A_ub]) != 0
+    r = rows.shape[0]
+    link = scipy.sparse.coo_matrix(rows).tocsr()
+    graph = scipy.sparse.bmat([[None, link.T], [link, None]], format="csr")
+    if r == 0:
+        labels = np.arange(size)
+    else:
+        labels = scipy.sparse.csgraph.connected_components(graph, directed=False)[1][:size]
+    _, first, inverse = np.unique(labels, return_index=True, return_inverse=True)
+    order = np.argsort(first, kind="stable")  # groups in the order of their coefficients
+    groups = [np.flatnonzero(inverse == g) for g in order]
+    needed = rows[: constraints.A_eq.shape[0]][constraints.b_eq != 0].any(axis=0)
+    return groups, np.array([bool(needed[g].any()) for g in groups])
+
+
+def held_at_zero(constraints: LinearConstraints, support: np.ndarray) -> np.ndarray:
+    """Coefficients of ``support`` (p, n) that its equalities hold at zero: those whose
+    unit vector lies in the span of the equalities restricted to the support, with a
+    zero value there."""
+    on = np.flatnonzero(support.ravel(order="F"))
+    out = np.zeros(support.size, dtype=bool)
+    a = constraints.A_eq[:, on]
+    keep = np.abs(a).sum(axis=1) > 0
+    a, b = a[keep], constraints.b_eq[keep]
+    if a.shape[0]:
+        # e_j = a^T w: the coefficient is fixed at w . b.
+        w, *_ = np.linalg.lstsq(a.T, np.eye(on.size), rcond=None)
+        fixed = np.linalg.norm(a.T @ w - np.eye(on.size), axis=0) <= 1e-9
+        value = b @ w
+        scale = np.abs(b).max(initial=0.0)
+        out[on] = fixed & (np.abs(value) <= 1e-12 * max(scale, 1e-300))
+    return out.reshape(support.shape, order="F")
+
+
 @dataclass(frozen=True)
 class ConstrainedRefit:
-    """Outcome of :func:`constrained_refit`.
+    """Outcome of :func:`constrained_refit` and :func:`constrained_selection`.
 
     Attributes
     ----------
     coef : ndarray (p, n)
         The refitted coefficients (user units).
     support : ndarray of bool (p, n)
-        The selected terms with those tied to them by a constraint.
+        The selected terms (with those tied to them by a constraint, less those the
+        constraints hold at zero).
     residual : float
         The constraints' relative residual at ``coef``.
     converged : bool
         Whether the refit was certified.
+    start : ndarray of bool (p, n), optional
+        Where the search started: the unconstrained selection with its tied terms.
+    score : float
+        The summed criterion of the support (nan for a refit without search).
+    evaluated : int
+        The supports refitted by the search.
+    delta : ndarray (n,), optional
+        The Huber threshold of the refit: the unconstrained selection's for
+        :func:`constrained_refit`, the constrained model's own for
+        :func:`constrained_selection`.
     """
 
     coef: np.ndarray
     support: np.ndarray
     residual: float
     converged: bool
+    start: np.ndarray | None = None
+    score: float = float("nan")
+    evaluated: int = 0
+    delta: np.ndarray | None = None
+
+
+def held_off_support(constraints: LinearConstraints, support) -> LinearConstraints:
+    """``constraints`` with every coefficient off ``support`` (p, n) held at zero (one
+    equality each, labelled "not selected")."""
+    out = np.flatnonzero(~np.asarray(support, dtype=bool).ravel(order="F"))
+    zeros = np.zeros((out.size, constraints.n_terms * constraints.n_equations))
+    zeros[np.arange(out.size), out] = 1.0
+    return constraints + LinearConstraints(
+        *constraints.shape, zeros, np.zeros(out.size),
+        labels_eq=tuple("not selected" for _ in out),
+    )  # fmt: skip
+
+
+def _refit(
+    kept: Problem, support, delta, constraints: LinearConstraints, method, solver, start=None
+):  # fmt: skip
+    """The unpenalised constrained fit on ``support`` (p, n), solved on the columns some
+    equation uses (the others are zero), from ``start`` (p, n; the fast path's warm
+    start).  Returns ``(coef, result)``."""
+    p, n = support.shape
+    cols = np.flatnonzero(support.any(axis=1))
+    coef = np.zeros((p, n))
+    if cols.size == 0:
+        return coef, None
+    held = held_off_support(constraints, support)
+    idx = (cols[:, None] + p * np.arange(n)[None, :]).ravel(order="F")
+    rows = (held.A_eq[:, idx] != 0).any(axis=1) | (held.b_eq != 0)
+    sub = LinearConstraints(
+        cols.size, n, held.A_eq[rows][:, idx], held.b_eq[rows], held.A_ub[:, idx], held.b_ub,
+    )  # fmt: skip
+    method = method if method in ("admm", "cvxpy") else "admm"
+    options = {}
+    if method == "admm" and start is not None:
+        options["warm_start"] = np.where(support[cols], np.asarray(start)[cols], 0.0)
+    result = fit(
+        kept.theta[:, cols], kept.y, method=method, delta=delta, lam=0.0,
+        solver=solver if method == "cvxpy" else None, constraints=sub, **options,
+    )  # fmt: skip
+    coef[cols] = np.where(support[cols], result.coef, 0.0)
+    return coef, result
+
+
+def _outcome(coef, support, constraints, result, **extra) -> ConstrainedRefit:
+    support = support & ~held_at_zero(constraints, support)
+    coef = np.where(support, coef, 0.0)
+    converged = True if result is None else bool(result.converged)
+    return ConstrainedRefit(coef, support, constraints.residual(coef), converged, **extra)
 
 
 def constrained_refit(
     kept: Problem, coef, delta, constraints: LinearConstraints, *, method: str, solver=None
 ) -> ConstrainedRefit:
     """The selected terms of ``coef`` (p, n) and those tied to them, refitted without
-    penalty under ``constraints`` at ``delta`` on the kept samples."""
+    penalty under ``constraints`` at ``delta`` on the kept samples (no search)."""
     support = tied_closure(np.asarray(coef) != 0, constraints)
-    p, n = support.shape
-    out = np.flatnonzero(~support.ravel(order="F"))
-    zeros = np.zeros((out.size, p * n))
-    zeros[np.arange(out.size), out] = 1.0
-    held = constraints + LinearConstraints(
-        p, n, zeros, np.zeros(out.size), labels_eq=tuple("not selected" for _ in out)
-    )
-    result = fit(
-        kept.theta, kept.y, method=method if method in ("admm", "cvxpy") else "admm",
-        delta=delta, lam=0.0, solver=solver if method == "cvxpy" else None, constraints=held,
+    refit, result = _refit(kept, support, delta, constraints, method, solver)
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (support.shape[1],)).copy()
+    return _outcome(refit, support, constraints, result, delta=delta)
+
+
+def constrained_selection(
+    kept: Problem, coef, delta, constraints: LinearConstraints, *, method: str, solver=None
+) -> ConstrainedRefit:
+    """The support with the best summed criterion under ``constraints``, from the
+    unconstrained selection ``coef`` (p, n) with its tied terms, by adding or removing
+    one group of tied coefficients at a time (see the module docstring)."""
+    p, n = np.shape(coef)
+    m = kept.theta.shape[0]
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (n,)).copy()
+    groups, needed = coefficient_groups(constraints)
+    masks = []
+    for g in groups:
+        mask = np.zeros(p * n, dtype=bool)
+        mask[g] = True
+        masks.append(mask.reshape(p, n, order="F"))
+    start = tied_closure(np.asarray(coef) != 0, constraints)
+    for mask in (mask for mask, need in zip(masks, needed, strict=True) if need):
+        start |= mask
+    # The criterion's scales, as in the unconstrained selection but for the model under
+    # the constraints: delta and the correlation time of the residuals of the most
+    # complete constrained model (every term, no penalty), delta from their robust
+    # scale as auto_delta measures it.
+    every = np.ones((p, n), dtype=bool)
+    full = None
+    for _ in range(DELTA_ROUNDS):
+        full, _result = _refit(kept, every, delta, constraints, method, solver, full)
+        r = kept.y - kept.theta @ full
+        new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(r), delta_floor(kept.y))
+        change = np.abs(new - delta) / delta
+        delta = new
+        if change.max() < 1e-2:
+            break
+    tau = correlation_time(huber_psi(r, delta), kept.segments)
+    sigma = delta / HUBER_EFFICIENCY_CONSTANT
+    penalty = np.log(np.maximum(m / tau, 2.0))
+    cache = {}
+
+    def score(support, warm):
+        key = support.tobytes()
+        if key not in cache:
+            refit, result = _refit(kept, support, delta, constraints, method, solver, warm)
+            loss = huber(kept.y - kept.theta @ refit, delta).sum(axis=0)
+            on = support.ravel(order="F")
+            a = constraints.A_eq[:, on]
+            tied = np.linalg.matrix_rank(a) if a.size else 0
+            value = float(
+                np.sum(2.0 * loss / sigma**2 / tau + support.sum(axis=0) * penalty)
+                - tied * penalty.mean()
+            )
+            cache[key] = (value, refit, result)
+        return cache[key][0]
+
+    current, best = start, score(start, full)
+    movable = [mask for mask, need in zip(masks, needed, strict=True) if not need]
+    while movable:
+        # Each trial differs from the current support by one group: its refit starts
+        # from the current one (the fast path's warm start).
+        here = cache[current.tobytes()][1]
+        trials = [current ^ mask for mask in movable]
+        values = [score(trial, here) for trial in trials]
+        k = int(np.argmin(values))
+        if not values[k] < best:
+            break
+        current, best = trials[k], values[k]
+    _, refit, result = cache[current.tobytes()]
+    return _outcome(
+        refit, current, constraints, result, start=start, score=best, evaluated=len(cache),
+        delta=delta,
     )  # fmt: skip
-    coef = np.where(support, result.coef, 0.0)
-    return ConstrainedRefit(coef, support, constraints.residual(coef), bool(result.converged))

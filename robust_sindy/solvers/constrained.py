@@ -38,6 +38,7 @@ from ..core.certificates import column_norms
 from ..core.constraints import LinearConstraints, constrained_certificate
 from ..core.losses import huber, huber_psi, soft_threshold
 from . import driver
+from .newton import line_search
 
 __all__ = [
     "POLISH_ROUNDS",
@@ -48,6 +49,19 @@ __all__ = [
 
 #: Rounds of an early polish (ADMM residuals above 1e-4 of the iterates' size).
 POLISH_ROUNDS = 15
+#: Rounds of a polish that runs to the end (from the unconstrained answer, or once
+#: ADMM has converged).  Each round solves one system of the support's size; where
+#: nearly every residual is beyond delta (a problem close to least absolute
+#: deviations) the polish walks from piece to piece like a simplex method, about a
+#: hundred rounds on the problems of the tests.
+FINAL_ROUNDS = 200
+#: Rounds in a row without a lower objective after which the polish stops (as the
+#: unconstrained Newton method's stall rule); its point then goes to the certificate.
+STALL_ROUNDS = 5
+#: The proximal weight of the polish's fallback step, in the normalised units of
+#: :func:`_normalised` (library columns of norm 1): far below the curvature of any
+#: inlier, so it only bounds the directions that have none.
+PROX = 1e-8
 
 
 class ConstrainedOutput:
@@ -210,39 +224,108 @@ def _inlier_system(theta, y, delta, outside, out_sign, previous=None):
     return grams, rhs
 
 
-def _newton_point(system, lam_v, c, d, support, sign, p):
+def _newton_point(system, lam_v, c, d, support, sign, p, at=None, prox=0.0):
     """The minimiser of the objective with the outliers' and the support's signs
     fixed (``system``: :func:`_inlier_system`), on ``support``, under
     ``c[:, support] x = d`` (least squares: a singular system gets its minimum-norm
-    solution).  Returns ``(x_support, multipliers)``."""
+    solution); with ``prox`` > 0, of that objective plus ``prox / 2 ||x - at||^2``
+    (a proximal step, bounded where the inliers leave directions without curvature).
+    Returns ``(x_support, multipliers, whether it meets the stationarity)``."""
     grams, rhs_full = system
     cols, eq = support % p, support // p
     same = eq[:, None] == eq[None, :]
     h = np.where(same, grams[eq[:, None], cols[:, None], cols[None, :]], 0.0)
     rhs = rhs_full[cols, eq] - lam_v[support] * sign
+    if prox:
+        h = h + prox * np.eye(h.shape[0])
+        rhs = rhs + prox * at
     c = c[:, support]
     kkt = np.block([[h, c.T], [c, np.zeros((c.shape[0], c.shape[0]))]])
     sol = np.linalg.lstsq(kkt, np.concatenate([rhs, d]), rcond=None)[0]
-    return sol[: support.size], sol[support.size :]
+    xs, mult = sol[: support.size], sol[support.size :]
+    # Where the inliers leave a direction without curvature along which the outliers'
+    # pull does not vanish, the piece has no minimiser and the least-squares solution
+    # does not meet its stationarity.
+    parts = (h @ xs, c.T @ mult, rhs)
+    miss = np.linalg.norm(parts[0] + parts[1] - parts[2])
+    return xs, mult, bool(miss <= 1e-8 * sum(np.linalg.norm(v) for v in parts))
+
+
+def _step(x, support, xs, c_ub, b_ub, active, free, descend):
+    """The step from ``x`` to the point ``xs`` on ``support`` and its longest length
+    (at most 1): up to the first penalised coefficient that crosses zero or inactive
+    inequality that would be violated when it must ``descend``; otherwise (the first
+    step from a start that does not meet the constraints) whole, to reach them."""
+    target = np.zeros_like(x)
+    target[support] = xs
+    step = target - x
+    alpha = 1.0
+    if descend:
+        old = (x[support] != 0) & ~free[support]
+        cross = old & (np.sign(xs) != np.sign(x[support]))
+        if cross.any():
+            t = x[support][cross] / (x[support][cross] - xs[cross])
+            alpha = min(alpha, float(t.min()))
+        inactive = ~active
+        grow = c_ub[inactive] @ step
+        room = b_ub[inactive] - c_ub[inactive] @ x
+        hit = grow > 0
+        if hit.any():
+            alpha = min(alpha, float(np.min(np.maximum(room[hit], 0.0) / grow[hit])))
+    return step, alpha
+
+
+def _stepped(theta, y, delta, lam_v, x, step, alpha, support):
+    """``x + alpha step`` (crossing coefficients landed exactly on zero when the
+    step stops short), with its objective and residuals."""
+    trial = x + alpha * step
+    if alpha < 1.0:
+        trial[support[(np.abs(trial[support]) <= 1e-12 * np.abs(x[support]))]] = 0.0
+    return trial, _objective(theta, y, delta, lam_v, trial)
+
+
+def _line_search(theta, y, delta, lam_v, x, r, step, upper):
+    """The exact minimiser over ``[0, upper]`` of the objective along ``step`` from
+    ``x`` (residuals ``r``): :func:`robust_sindy.solvers.newton.line_search` over the
+    residuals of every equation at once."""
+    q = _theta_x(theta, step, y.shape[1])
+    moving = q != 0
+    deltas = np.broadcast_to(delta[None, :], r.shape)[moving]
+    return line_search(r[moving], q[moving], x, step, lam_v, deltas, upper=upper)
 
 
 def _polish(
-    theta, y, delta, lam, c_eq, b_eq, c_ub, b_ub, x, active, rounds=30
+    theta, y, delta, lam, c_eq, b_eq, c_ub, b_ub, x, active, rounds=FINAL_ROUNDS
 ):  # fmt: skip
     """A semismooth Newton method with working sets, from an approximate solution
     ``x`` (vec) and its ``active`` inequalities.  On the support and signs of ``x``,
     the outliers and signs of its residuals and the active inequalities, the
     optimality conditions are linear (:func:`_newton_point`); the step towards that
     point stops where a coefficient crosses zero (it leaves the support) or an
-    inactive inequality would be violated (it becomes active), and halves until the
-    objective does not increase.  Then inequalities with a negative multiplier are
-    released, and the terms whose stationarity is violated enter with the sign of
-    their violation (kept at zero when the solve gives them the other sign).  Stops
-    when a full step changes no set.  Returns ``(x, nu, mu)``, or None."""
+    inactive inequality would be violated (it becomes active).  Then inequalities
+    with a negative multiplier are released, and the terms whose stationarity is
+    violated enter with the sign of their violation (kept at zero when the solve gives
+    them the other sign).  Where that point does not lower the objective, or does not
+    meet the linear conditions (the inliers leave a direction without curvature), a
+    proximal step (weight ``PROX``) is taken instead, to the exact minimiser along it.
+    Coefficients without penalty have no sign to keep: they are always in the support
+    and may cross zero.  Stops when a full Newton step changes no set (no outlier
+    changes side).  Returns ``(x, nu, mu, settled)``, or None."""
     p = theta.shape[1]
     n = y.shape[1]
-    r_eq = c_eq.shape[0]
     lam_v = lam.ravel(order="F")
+    # Rows that hold one coefficient at zero (a coefficient not selected): it is left
+    # out of every system, and its multiplier is read off its stationarity at the end.
+    single = (c_eq != 0).sum(axis=1) == 1
+    pins = np.flatnonzero(single & (b_eq == 0))
+    pinned_at = np.argmax(c_eq[pins] != 0, axis=1)
+    pinned = np.zeros(x.size, dtype=bool)
+    pinned[pinned_at] = True
+    first_pin = np.unique(pinned_at, return_index=True)[1]  # one row per coefficient
+    rows = np.setdiff1d(np.arange(c_eq.shape[0]), pins)
+    c_rows, b_rows = c_eq[rows], b_eq[rows]
+    r_eq = rows.size
+    free = (lam_v == 0) & ~pinned  # no kink at zero: in the support, any sign
     norms = np.tile(np.sqrt(np.einsum("ij,ij->j", theta, theta)), n)
     obj, r = _objective(theta, y, delta, lam_v, x)
     entering = np.zeros_like(x)  # the sign each entering term must take
@@ -251,17 +334,24 @@ def _polish(
     # certificate fits them over every term); they do not enter again.
     blocked = np.zeros(x.size, dtype=bool)
     best = previous = None
+    # A start that already meets the constraints (e.g. a warm start) descends from the
+    # first round; otherwise the first step is taken whole, to reach them.
+    gap = np.concatenate([np.abs(c_eq @ x - b_eq), np.maximum(c_ub @ x - b_ub, 0.0)])
+    reached = gap.max(initial=0.0) <= 1e-12 * max(1.0, np.abs(x).max(initial=0.0))
+    stalled = 0
     for round_ in range(rounds):
+        descend = bool(round_) or reached
         outside = np.abs(r) > delta[None, :]
-        system = _inlier_system(theta, y, delta, outside, np.sign(r), previous)
+        pulled = np.where(outside, np.sign(r), 0.0)  # the outliers' sides
+        system = _inlier_system(theta, y, delta, outside, pulled, previous)
         previous = (system[0], outside)
-        c = np.vstack([c_eq, c_ub[active]])
-        d = np.concatenate([b_eq, b_ub[active]])
+        c = np.vstack([c_rows, c_ub[active]])
+        d = np.concatenate([b_rows, b_ub[active]])
         turned = np.zeros(x.size, dtype=bool)
         while True:
-            support = np.flatnonzero((x != 0) | (entering != 0))
+            support = np.flatnonzero(((x != 0) | (entering != 0) | free) & ~pinned)
             sign = np.where(x[support] != 0, np.sign(x[support]), entering[support])
-            xs, mult = _newton_point(system, lam_v, c, d, support, sign, p)
+            xs, mult, exact = _newton_point(system, lam_v, c, d, support, sign, p)
             wrong = support[(entering[support] != 0) & (np.sign(xs) != entering[support])]
             if not wrong.size:
                 break
@@ -273,50 +363,50 @@ def _polish(
             blocked[wrong[again]] = True
             entering[wrong[~again]] *= -1.0
             turned[wrong] = True
-        target = np.zeros_like(x)
-        target[support] = xs
-        step = target - x
-        alpha = 1.0
-        if round_:  # the first step reaches the constraints; later ones descend
-            old = x[support] != 0
-            cross = old & (np.sign(xs) != np.sign(x[support]))
-            if cross.any():
-                t = x[support][cross] / (x[support][cross] - xs[cross])
-                alpha = min(alpha, float(t.min()))
-            inactive = ~active
-            grow = c_ub[inactive] @ step
-            room = b_ub[inactive] - c_ub[inactive] @ x
-            hit = grow > 0
-            if hit.any():
-                alpha = min(alpha, float(np.min(np.maximum(room[hit], 0.0) / grow[hit])))
-        for _ in range(40):
-            trial = x + alpha * step
-            if alpha < 1.0:  # the crossing coefficients land exactly on zero
-                trial[support[(np.abs(trial[support]) <= 1e-12 * np.abs(x[support]))]] = 0.0
-            new_obj, new_r = _objective(theta, y, delta, lam_v, trial)
-            if not round_ or new_obj <= obj + 1e-13 * abs(obj):
-                break
-            alpha *= 0.5
-        else:
-            return None if best is None else (*best, False)
+        step, alpha = _step(x, support, xs, c_ub, b_ub, active, free, descend)
+        trial, (new_obj, new_r) = _stepped(theta, y, delta, lam_v, x, step, alpha, support)
+        if descend and (not exact or new_obj > obj + 1e-13 * abs(obj)):
+            # The pieces at x are not the minimiser's (and where the inliers leave a
+            # direction without curvature, the Newton point is no guide at all): a
+            # proximal step instead, to the exact minimiser along it (a convex
+            # piecewise quadratic) within the same bounds.
+            xs, mult, _ = _newton_point(system, lam_v, c, d, support, sign, p, x[support], PROX)
+            exact = False  # not a settled point: the next round's Newton point decides
+            step, alpha = _step(x, support, xs, c_ub, b_ub, active, free, descend)
+            alpha = _line_search(theta, y, delta, lam_v, x, r, step, alpha)
+            trial, (new_obj, new_r) = _stepped(theta, y, delta, lam_v, x, step, alpha, support)
+            if alpha == 0.0 or new_obj > obj + 1e-13 * abs(obj):
+                return None if best is None else (*best, False)
+        # Rounds that no longer lower the objective: at a degenerate optimum the sets
+        # can cycle (a term enters, crosses zero, leaves); the certificate decides.
+        stalled = stalled + 1 if new_obj >= obj - 1e-13 * abs(obj) else 0
         x, obj, r = trial, new_obj, new_r
         entering[:] = 0.0
-        nu = mult[:r_eq]
+        nu = np.zeros(c_eq.shape[0])
+        nu[rows] = mult[:r_eq]
         mu = np.zeros(c_ub.shape[0])
         mu[active] = mult[r_eq:]
         psi = huber_psi(r, delta[None, :])
         hh = _theta_t(theta, psi) - c_eq.T @ nu - c_ub.T @ mu
+        at = pinned_at[first_pin]
+        nu[pins[first_pin]] = hh[at] / c_eq[pins[first_pin], at]
+        hh[at] = 0.0
         scale = np.maximum(lam_v, norms * np.repeat(np.sqrt(np.sum(psi**2, axis=0)), p))
-        excess = np.where((x == 0) & ~blocked, (np.abs(hh) - lam_v) / scale, 0.0)
+        excess = np.where(
+            (x == 0) & ~blocked & ~free & ~pinned, (np.abs(hh) - lam_v) / scale, 0.0
+        )
         enter = np.zeros_like(excess, dtype=bool)
         if excess.max(initial=0.0) > 1e-10:  # the most violated term enters, one a round
             enter[np.argmax(excess)] = True
         release = active & (mu < 0)
         violated = ~active & (c_ub @ x > b_ub)
         best = (x.copy(), nu, np.maximum(mu, 0.0))
-        same = np.array_equal(np.abs(r) > delta[None, :], outside)
-        if alpha == 1.0 and same and not (enter.any() or release.any() or violated.any()):
+        # The same outliers on the same sides (a residual may jump across the zone).
+        same = np.array_equal(np.where(np.abs(r) > delta[None, :], np.sign(r), 0.0), pulled)
+        if exact and alpha == 1.0 and same and not (enter.any() or release.any() or violated.any()):
             return (*best, True)
+        if stalled >= STALL_ROUNDS:
+            return (*best, False)
         entering[enter] = np.sign(hh[enter])
         active = (active & ~release) | violated
     return None if best is None else (*best, False)
@@ -324,11 +414,13 @@ def _polish(
 
 def solve_constrained_admm(
     theta, y, delta, lam, constraints: LinearConstraints, *, rho=1.0, alpha=1.6,
-    max_iter=20_000, eps=1e-9, tol=1e-8, check_every=10, polish=True,
+    max_iter=20_000, eps=1e-9, tol=1e-8, check_every=10, polish=True, warm_start=None,
 ) -> ConstrainedOutput:  # fmt: skip
     """The constrained problem by ADMM on the Huber loss's infimal convolution, then a
     polish on the sets it found (see the module docstring); ``tol`` is the relative
     KKT violation (stationarity and constraint residual) that stops it.
+    ``warm_start`` (p, n), e.g. the answer to a problem that differs a little, is the
+    polish's first start; the unconstrained fast path's answer is the next.
 
     It runs in units where the library's columns have norm 1 and the targets a root
     mean square of 1 (``u = scale x / sigma``), with each constraint's row of unit
@@ -359,19 +451,30 @@ def solve_constrained_admm(
     it = 0
     status = "max_iter"
     best = last = None
+    starts = []
+    if polish and warm_start is not None:
+        starts.append(("warm start", lambda: np.asarray(warm_start, float).ravel(order="F")))
     if polish:
-        # First the polish from the unconstrained fast path's answer: when the
-        # constraints move the optimum little, its sets are nearly right.
-        free = driver.solve(theta, y, delta, lam).coef.ravel(order="F") / back
+        # The polish from the unconstrained fast path's answer: when the constraints
+        # move the optimum little, its sets are nearly right.
+        starts.append(
+            ("unconstrained", lambda: driver.solve(theta, y, delta, lam).coef.ravel(order="F"))
+        )
+    for name, start in starts:
+        free = start() / back
         slack = np.maximum(b_ub - c_ub @ free, 0.0)
         point, nu, mu, settled = _polish_point(
             ts, ys, ds, lam_s, c_eq, b_eq, c_ub, b_ub, free, slack
         )
-        if settled:
-            best = certificate(point, nu, mu)
+        # An unsettled polish may still end at the optimum (at a degenerate one the
+        # working sets can cycle at a constant objective): the certificate decides.
+        if nu is not None:
+            found = certificate(point, nu, mu)
+            if best is None or found[1].kkt < best[1].kkt:
+                best = found
             if best[1].kkt <= tol:
                 coef, cert = best
-                info = {"history": history, "rho": rho, "start": "unconstrained"}
+                info = {"history": history, "rho": rho, "start": name}
                 return ConstrainedOutput(coef, 0, "certified", cert.nu, cert.mu, info, cert)
     for it in range(1, max_iter + 1):
         a_x, a_s, a_w = z - u_x, q - u_s, v - u_w
@@ -412,7 +515,7 @@ def solve_constrained_admm(
         if polish and (fresh or done):
             # Far from the optimum (ADMM residuals above 1e-4) a few rounds only: the
             # polish settles there when the sets are right, and ADMM goes on when not.
-            rounds = 50 if done or max(primal, dual) <= 1e-4 * size else POLISH_ROUNDS
+            rounds = FINAL_ROUNDS if done or max(primal, dual) <= 1e-4 * size else POLISH_ROUNDS
             point, nu, mu, settled = _polish_point(
                 ts, ys, ds, lam_s, c_eq, b_eq, c_ub, b_ub, z, q, rounds
             )
@@ -444,7 +547,7 @@ def solve_constrained_admm(
     return ConstrainedOutput(coef, it, status, cert.nu, cert.mu, info, cert)
 
 
-def _polish_point(ts, y, delta, lam_s, c_eq, b_eq, c_ub, b_ub, z, q, rounds=30):
+def _polish_point(ts, y, delta, lam_s, c_eq, b_eq, c_ub, b_ub, z, q, rounds=FINAL_ROUNDS):
     """The polish from the ADMM copy ``z`` (exactly sparse) and the inequalities whose
     slack ``q`` is zero, with its multipliers and whether it settled, or ``z``."""
     p = ts.shape[1]
