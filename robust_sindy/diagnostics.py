@@ -903,7 +903,11 @@ def diagnose(
             np.full(n, np.nan) if screening is None else screening.relative_scale.copy()
         ),
         noise_factor=noise_factor,
-        unstable=stability(kept.theta_s, kept.y_s, standard, delta_s, method),
+        unstable=(
+            stability(kept.theta_s, kept.y_s, standard, delta_s, method)
+            if constrained is None or constrained.unstable is None
+            else constrained.unstable
+        ),
         bias_ratio=np.ascontiguousarray(final.bias_ratio.T),
         truncation_ratio=np.ascontiguousarray(final.truncation_ratio.T),
         below_floor=np.ascontiguousarray(below.T),

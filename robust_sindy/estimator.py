@@ -38,7 +38,14 @@ from .core.blas import one_thread
 from .core.constraints import LinearConstraints
 from .core.scaling import Standardizer
 from .core.validation import as_float_array
-from .diagnostics import Diagnostics, IdentificationWarning, diagnose, warn
+from .diagnostics import (
+    STABILITY_BLOCKS,
+    STABILITY_TOLERANCE,
+    Diagnostics,
+    IdentificationWarning,
+    diagnose,
+    warn,
+)
 from .fitting import METHODS
 from .library import BaseLibrary, PolynomialLibrary
 from .selection.bias import noise_columns
@@ -51,7 +58,11 @@ from .selection.choice import (
     huber_method,
     noise_floor,
 )
-from .selection.constrained import build_constraints, constrained_selection
+from .selection.constrained import (
+    build_constraints,
+    constrained_selection,
+    constrained_stability,
+)
 from .selection.criteria import CRITERIA
 from .selection.final import FinalSelection, final_selection
 from .selection.problem import Problem
@@ -471,6 +482,10 @@ class HuberSINDy(BaseEstimator):
             refit = constrained_selection(
                 kept, final.coef, fitted.result.delta, con, method=self.method, solver=self.solver
             )
+            refit = replace(refit, unstable=constrained_stability(
+                kept, refit, con, blocks=STABILITY_BLOCKS, tolerance=STABILITY_TOLERANCE,
+                method=self.method, solver=self.solver,
+            ))  # fmt: skip
             final = replace(final, coef=refit.coef)
         covered = None if weak is None else weak.covered(rows.keep)
         stages.start("diagnostics")

@@ -30,6 +30,8 @@ preserving model has no ``x0^2`` in ``(x0)'``) are left out of it.
 
 from __future__ import annotations
 
+import itertools
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -49,6 +51,7 @@ __all__ = [
     "coefficient_groups",
     "constrained_refit",
     "constrained_selection",
+    "constrained_stability",
     "held_off_support",
     "tied_closure",
 ]
@@ -159,6 +162,8 @@ class ConstrainedRefit:
         The Huber threshold of the refit: the unconstrained selection's for
         :func:`constrained_refit`, the constrained model's own for
         :func:`constrained_selection`.
+    unstable : ndarray of bool (n, p), optional
+        :func:`constrained_stability` of the selected terms, when it was measured.
     """
 
     coef: np.ndarray
@@ -169,6 +174,7 @@ class ConstrainedRefit:
     score: float = float("nan")
     evaluated: int = 0
     delta: np.ndarray | None = None
+    unstable: np.ndarray | None = None
 
 
 def held_off_support(constraints: LinearConstraints, support) -> LinearConstraints:
@@ -299,3 +305,30 @@ def constrained_selection(
         refit, current, constraints, result, start=start, score=best, evaluated=len(cache),
         delta=delta,
     )  # fmt: skip
+
+
+def constrained_stability(
+    kept: Problem, found: ConstrainedRefit, constraints: LinearConstraints, *, blocks: int,
+    tolerance: float, method: str, solver=None,
+) -> np.ndarray:  # fmt: skip
+    """Selected terms (n, p) of ``found`` that leaving out one of ``blocks`` contiguous
+    blocks of the kept samples changes (sign, or by more than ``tolerance`` of the
+    value) when its support is refitted under ``constraints`` at its delta: the
+    stability check of the unconstrained model
+    (:func:`robust_sindy.diagnostics.stability`), with the constraints that tie the
+    equations (refitted one by one without them, tied terms swing freely)."""
+    coef, support = found.coef, found.support
+    m = kept.theta.shape[0]
+    unstable = np.zeros(support.shape, dtype=bool)
+    if not support.any() or m < blocks * (support.sum(axis=0).max() + 2):
+        return unstable.T
+    edges = np.linspace(0, m, blocks + 1).round().astype(int)
+    for a, b in itertools.pairwise(edges):
+        rows = np.ones(m, dtype=bool)
+        rows[a:b] = False
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            c, _ = _refit(kept.keep(rows), support, found.delta, constraints, method, solver, coef)
+        moved = (np.sign(c) != np.sign(coef)) | (np.abs(c - coef) > tolerance * np.abs(coef))
+        unstable |= support & moved
+    return unstable.T

@@ -392,9 +392,7 @@ def _polish(
         nu[pins[first_pin]] = hh[at] / c_eq[pins[first_pin], at]
         hh[at] = 0.0
         scale = np.maximum(lam_v, norms * np.repeat(np.sqrt(np.sum(psi**2, axis=0)), p))
-        excess = np.where(
-            (x == 0) & ~blocked & ~free & ~pinned, (np.abs(hh) - lam_v) / scale, 0.0
-        )
+        excess = np.where((x == 0) & ~blocked & ~free & ~pinned, (np.abs(hh) - lam_v) / scale, 0.0)
         enter = np.zeros_like(excess, dtype=bool)
         if excess.max(initial=0.0) > 1e-10:  # the most violated term enters, one a round
             enter[np.argmax(excess)] = True
