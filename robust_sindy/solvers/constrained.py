@@ -13,10 +13,10 @@
 ``cp.huber`` (which is ``2 H``, hence the factor 1/2), ``cp.abs`` and the
 constraints on ``cp.vec(Xi)``, solved by Clarabel or OSQP.
 
-**Fast path** (:func:`solve_constrained_admm`): first the polish below from the
-unconstrained fast path's answer (:func:`robust_sindy.solvers.driver.solve`), which
-certifies at once when the constraints move the optimum little; otherwise the Huber
-loss is the infimal
+**Fast path** (:func:`solve_constrained_admm`): first the polish below from a warm
+start when one is given, then from the unconstrained fast path's answer
+(:func:`robust_sindy.solvers.driver.solve`), which certifies at once when the
+constraints move the optimum little; otherwise the Huber loss is the infimal
 convolution ``H_delta(r) = min_w (r - w)^2 / 2 + delta |w|``, so the problem is a
 least-squares problem in ``(x, w)`` with L1 terms on both.  Inequalities get slacks
 ``A_ub x + s = b_ub``, ``s >= 0``.  ADMM splits ``(x, s, w)`` (a least-squares step
@@ -26,7 +26,9 @@ from copies ``(z, q, v)`` (soft-thresholding and a clip: ``v`` is nonzero exactl
 the outliers, ``z`` exactly on the support).  Then a polish: on the support, the
 inliers and the active inequalities that the iteration found, the optimality
 conditions are linear (an equality-constrained least-squares problem); it is solved
-and the sets are updated until they no longer change.  The certificate decides.
+and the sets are updated until they no longer change, with a proximal step to the
+exact minimiser along it where that point is no descent (:func:`_polish`).  The
+certificate decides.
 """
 
 from __future__ import annotations
@@ -41,7 +43,10 @@ from . import driver
 from .newton import line_search
 
 __all__ = [
+    "FINAL_ROUNDS",
     "POLISH_ROUNDS",
+    "PROX",
+    "STALL_ROUNDS",
     "ConstrainedOutput",
     "solve_constrained_admm",
     "solve_constrained_cvxpy",
@@ -52,8 +57,8 @@ POLISH_ROUNDS = 15
 #: Rounds of a polish that runs to the end (from the unconstrained answer, or once
 #: ADMM has converged).  Each round solves one system of the support's size; where
 #: nearly every residual is beyond delta (a problem close to least absolute
-#: deviations) the polish walks from piece to piece like a simplex method, about a
-#: hundred rounds on the problems of the tests.
+#: deviations) the polish walks from piece to piece like a simplex method (up to 134
+#: objective evaluations, one or two a round, on the hardest problems of the tests).
 FINAL_ROUNDS = 200
 #: Rounds in a row without a lower objective after which the polish stops (as the
 #: unconstrained Newton method's stall rule); its point then goes to the certificate.
