@@ -364,6 +364,26 @@ def test_huber_sindy_with_energy_preserving_constraints(tmp_path):
     assert rs.load_model(model.save(tmp_path / "named.json")).constraints == "energy_preserving"
 
 
+def test_a_group_of_tied_terms_keeps_only_the_members_it_needs():
+    # Lorenz's quadratic part conserves energy through one row that ties x1*x2 in (x0)',
+    # x0*x2 in (x1)' and x0*x1 in (x2)'; the first is zero, and the search leaves it out
+    # (selected with its group, it would be a term of value about zero).
+    from robust_sindy.systems import Lorenz
+
+    data = Lorenz().generate(t_end=10.0)
+    for seed in range(3):
+        rng = np.random.default_rng(seed)
+        x = data.x + 0.01 * data.x.std(axis=0) * rng.normal(size=data.x.shape)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rs.IdentificationWarning)
+            model = rs.HuberSINDy(constraints="energy_preserving").fit(x, data.t)
+        names = model.get_feature_names()
+        support = model.support_
+        assert not support[0, names.index("x1*x2")]
+        assert support[1, names.index("x0*x2")] and support[2, names.index("x0*x1")]
+        assert model.diagnostics_.constraints_certified
+
+
 def test_huber_sindy_refuses_constraints_it_cannot_use():
     t, x = _mean_field(0.01)
     with pytest.raises(ValueError, match="constraints must be None"):

@@ -20,9 +20,11 @@ equations at once, for the support with the best information criterion:
   term) summed over the equations, with one parameter fewer for each independent
   equality the support's coefficients must meet;
 * groups are added or removed one at a time, the best change first, while the
-  criterion falls.  A constraint can make a term necessary that the unconstrained
-  selection had no reason to keep: a quadratic term tied to another equation's must be
-  balanced by a linear one, which then pays its way.
+  criterion falls; then single members of the groups in the support are removed the
+  same way (a group's constraint may need only some of its members).  A constraint
+  can make a term necessary that the unconstrained selection had no reason to keep: a
+  quadratic term tied to another equation's must be balanced by a linear one, which
+  then pays its way.
 
 Coefficients that the constraints hold at zero on the final support (an energy-
 preserving model has no ``x0^2`` in ``(x0)'``) are left out of it.
@@ -289,17 +291,35 @@ def constrained_selection(
         return cache[key][0]
 
     current, best = start, score(start, full)
+
+    def descend(moves):
+        """The best of ``moves(current)`` while it lowers the criterion."""
+        nonlocal current, best
+        while True:
+            # Each trial differs from the current support by one move: its refit starts
+            # from the current one (the fast path's warm start).
+            here = cache[current.tobytes()][1]
+            trials = moves(current)
+            if not trials:
+                return
+            values = [score(trial, here) for trial in trials]
+            k = int(np.argmin(values))
+            if not values[k] < best:
+                return
+            current, best = trials[k], values[k]
+
     movable = [mask for mask, need in zip(masks, needed, strict=True) if not need]
-    while movable:
-        # Each trial differs from the current support by one group: its refit starts
-        # from the current one (the fast path's warm start).
-        here = cache[current.tobytes()][1]
-        trials = [current ^ mask for mask in movable]
-        values = [score(trial, here) for trial in trials]
-        k = int(np.argmin(values))
-        if not values[k] < best:
-            break
-        current, best = trials[k], values[k]
+    descend(lambda now: [now & ~m if (now & m).any() else now | m for m in movable])
+    # Then single members out of groups of two or more: a group's constraint may need
+    # only some of them (Lorenz's energy row ties x1*x2 in (x0)', x0*x2 in (x1)' and
+    # x0*x1 in (x2)', and the first is zero).
+    tied = [
+        one.reshape(p, n, order="F")
+        for g, need in zip(groups, needed, strict=True)
+        if len(g) > 1 and not need
+        for one in np.eye(p * n, dtype=bool)[g]
+    ]
+    descend(lambda now: [now & ~one for one in tied if (now & one).any()])
     _, refit, result = cache[current.tobytes()]
     return _outcome(
         refit, current, constraints, result, start=start, score=best, evaluated=len(cache),
