@@ -11,7 +11,6 @@ Read more in the user guide: :doc:`/guide/diagnostics`.
 
 from __future__ import annotations
 
-import itertools
 import warnings
 from collections.abc import Callable
 from dataclasses import dataclass, field
@@ -26,7 +25,7 @@ from .selection.bias import (
     residual_noise_factor,
     state_noise_factors,
 )
-from .selection.criteria import MIN_BIC_MARGIN
+from .selection.criteria import MIN_BIC_MARGIN, blocked_folds
 from .selection.lam_path import pilot_budget
 from .selection.refit import one_step_contributions
 from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, VISIBLE, robust_t
@@ -756,14 +755,12 @@ def stability(kept_theta_s, kept_y_s, coef_s, delta_s, method: str) -> np.ndarra
     (p, n) and ``delta_s`` (n,) standardised."""
     unstable = np.zeros(coef_s.shape, dtype=bool)
     m = kept_theta_s.shape[0]
-    edges = np.linspace(0, m, STABILITY_BLOCKS + 1).round().astype(int)
     for k in range(coef_s.shape[1]):
         sel = np.flatnonzero(coef_s[:, k])
         if sel.size == 0 or m < STABILITY_BLOCKS * (sel.size + 2):
             continue
         ref = coef_s[sel, k]
-        for a, b in itertools.pairwise(edges):
-            rows = np.r_[0:a, b:m]
+        for rows, _ in blocked_folds(m, STABILITY_BLOCKS):
             with warnings.catch_warnings():
                 warnings.simplefilter("ignore")
                 c = fit(

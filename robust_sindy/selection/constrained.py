@@ -32,7 +32,6 @@ preserving model has no ``x0^2`` in ``(x0)'``) are left out of it.
 
 from __future__ import annotations
 
-import itertools
 import warnings
 from dataclasses import dataclass
 
@@ -45,13 +44,13 @@ from ..core.losses import huber, huber_psi
 from ..core.scaling import robust_scale
 from ..core.statistics import correlation_time
 from ..fitting import HUBER_EFFICIENCY_CONSTANT, delta_floor, fit
+from .criteria import bic_from_loss, bic_terms, blocked_folds
 from .problem import Problem
 
 __all__ = [
     "ConstrainedRefit",
     "build_constraints",
     "coefficient_groups",
-    "constrained_refit",
     "constrained_selection",
     "constrained_stability",
     "held_off_support",
@@ -141,7 +140,7 @@ def held_at_zero(constraints: LinearConstraints, support: np.ndarray) -> np.ndar
 
 @dataclass(frozen=True)
 class ConstrainedRefit:
-    """Outcome of :func:`constrained_refit` and :func:`constrained_selection`.
+    """Outcome of :func:`constrained_selection`.
 
     Attributes
     ----------
@@ -157,13 +156,11 @@ class ConstrainedRefit:
     start : ndarray of bool (p, n), optional
         Where the search started: the unconstrained selection with its tied terms.
     score : float
-        The summed criterion of the support (nan for a refit without search).
+        The summed criterion of the support.
     evaluated : int
         The supports refitted by the search.
     delta : ndarray (n,), optional
-        The Huber threshold of the refit: the unconstrained selection's for
-        :func:`constrained_refit`, the constrained model's own for
-        :func:`constrained_selection`.
+        The Huber threshold of the refit: the constrained model's own.
     unstable : ndarray of bool (n, p), optional
         :func:`constrained_stability` of the selected terms, when it was measured.
     """
@@ -227,17 +224,6 @@ def _outcome(coef, support, constraints, result, **extra) -> ConstrainedRefit:
     return ConstrainedRefit(coef, support, constraints.residual(coef), converged, **extra)
 
 
-def constrained_refit(
-    kept: Problem, coef, delta, constraints: LinearConstraints, *, method: str, solver=None
-) -> ConstrainedRefit:
-    """The selected terms of ``coef`` (p, n) and those tied to them, refitted without
-    penalty under ``constraints`` at ``delta`` on the kept samples (no search)."""
-    support = tied_closure(np.asarray(coef) != 0, constraints)
-    refit, result = _refit(kept, support, delta, constraints, method, solver)
-    delta = np.broadcast_to(np.asarray(delta, dtype=float), (support.shape[1],)).copy()
-    return _outcome(refit, support, constraints, result, delta=delta)
-
-
 def constrained_selection(
     kept: Problem, coef, delta, constraints: LinearConstraints, *, method: str, solver=None
 ) -> ConstrainedRefit:
@@ -248,14 +234,17 @@ def constrained_selection(
     m = kept.theta.shape[0]
     delta = np.broadcast_to(np.asarray(delta, dtype=float), (n,)).copy()
     groups, needed = coefficient_groups(constraints)
-    masks = []
-    for g in groups:
-        mask = np.zeros(p * n, dtype=bool)
-        mask[g] = True
-        masks.append(mask.reshape(p, n, order="F"))
+
+    def mask(indices):
+        """The coefficients ``indices`` (of ``vec``) as a (p, n) mask."""
+        out = np.zeros(p * n, dtype=bool)
+        out[indices] = True
+        return out.reshape(p, n, order="F")
+
+    masks = [mask(g) for g in groups]
     start = tied_closure(np.asarray(coef) != 0, constraints)
-    for mask in (mask for mask, need in zip(masks, needed, strict=True) if need):
-        start |= mask
+    for g in (g for g, need in zip(masks, needed, strict=True) if need):
+        start |= g
     # The criterion's scales, as in the unconstrained selection but for the model under
     # the constraints: delta and the correlation time of the residuals of the most
     # complete constrained model (every term, no penalty), delta from their robust
@@ -271,8 +260,7 @@ def constrained_selection(
         if change.max() < 1e-2:
             break
     tau = correlation_time(huber_psi(r, delta), kept.segments)
-    sigma = delta / HUBER_EFFICIENCY_CONSTANT
-    penalty = np.log(np.maximum(m / tau, 2.0))
+    sigma, penalty = bic_terms(m, delta, tau)
     cache = {}
 
     def score(support, warm):
@@ -284,7 +272,7 @@ def constrained_selection(
             a = constraints.A_eq[:, on]
             tied = np.linalg.matrix_rank(a) if a.size else 0
             value = float(
-                np.sum(2.0 * loss / sigma**2 / tau + support.sum(axis=0) * penalty)
+                np.sum(bic_from_loss(loss, support.sum(axis=0), sigma, penalty, tau))
                 - tied * penalty.mean()
             )
             cache[key] = (value, refit, result)
@@ -308,17 +296,15 @@ def constrained_selection(
                 return
             current, best = trials[k], values[k]
 
-    movable = [mask for mask, need in zip(masks, needed, strict=True) if not need]
-    descend(lambda now: [now & ~m if (now & m).any() else now | m for m in movable])
+    movable = [g for g, need in zip(masks, needed, strict=True) if not need]
+    descend(lambda now: [now & ~g if (now & g).any() else now | g for g in movable])
     # Then single members out of groups of two or more: a group's constraint may need
     # only some of them (Lorenz's energy row ties x1*x2 in (x0)', x0*x2 in (x1)' and
     # x0*x1 in (x2)', and the first is zero).
     tied = [
-        one.reshape(p, n, order="F")
-        for g, need in zip(groups, needed, strict=True)
-        if len(g) > 1 and not need
-        for one in np.eye(p * n, dtype=bool)[g]
-    ]
+        mask(j) for g, need in zip(groups, needed, strict=True) if len(g) > 1 and not need
+        for j in g
+    ]  # fmt: skip
     descend(lambda now: [now & ~one for one in tied if (now & one).any()])
     _, refit, result = cache[current.tobytes()]
     return _outcome(
@@ -342,10 +328,9 @@ def constrained_stability(
     unstable = np.zeros(support.shape, dtype=bool)
     if not support.any() or m < blocks * (support.sum(axis=0).max() + 2):
         return unstable.T
-    edges = np.linspace(0, m, blocks + 1).round().astype(int)
-    for a, b in itertools.pairwise(edges):
+    for _, left_out in blocked_folds(m, blocks):
         rows = np.ones(m, dtype=bool)
-        rows[a:b] = False
+        rows[left_out] = False
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             c, _ = _refit(kept.keep(rows), support, found.delta, constraints, method, solver, coef)

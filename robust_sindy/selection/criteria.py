@@ -22,6 +22,8 @@ __all__ = [
     "MIN_BIC_MARGIN",
     "STABLE_POINTS",
     "Selection",
+    "bic_from_loss",
+    "bic_terms",
     "blocked_folds",
     "information_criterion",
     "select",
@@ -52,19 +54,19 @@ def information_criterion(theta, xdot, coef, delta, scale=None, tau=None) -> np.
     delta_k = loss_delta("huber", delta, n)
     coef = np.asarray(coef, dtype=float).reshape(theta.shape[1], n)
     tau = np.ones(n) if tau is None else np.broadcast_to(np.asarray(tau, float), (n,))
-    sigma, penalty = _bic_terms(theta.shape[0], delta_k, tau, scale)
+    sigma, penalty = bic_terms(theta.shape[0], delta_k, tau, scale)
     loss = huber(y - theta @ coef, delta_k).sum(axis=0)
-    out = _bic(loss, np.count_nonzero(coef, axis=0), sigma, penalty, tau)
+    out = bic_from_loss(loss, np.count_nonzero(coef, axis=0), sigma, penalty, tau)
     return float(out[0]) if one_d else out
 
 
-def _bic(loss, size, sigma, penalty, tau):
+def bic_from_loss(loss, size, sigma, penalty, tau):
     """:func:`information_criterion` from a Huber loss and a number of terms (or a
     lower bound on it from a lower bound on the loss)."""
     return 2.0 * loss / sigma**2 / tau + size * penalty
 
 
-def _bic_terms(m, delta, tau, scale=None):
+def bic_terms(m, delta, tau, scale=None):
     """The scale ``sigma`` and the penalty per term ``log(m / tau)`` of
     :func:`information_criterion` (per column; ``delta`` and ``tau`` arrays (n,))."""
     sigma = (
@@ -241,12 +243,12 @@ def _scores(theta, y, candidates, used, delta, tau):
     """The BIC (:func:`information_criterion`) of the candidates ``used`` (L, n),
     ``nan`` at the others; each from its own terms' columns."""
     L, _, n = candidates.shape
-    sigma, penalty = _bic_terms(theta.shape[0], delta, tau)
+    sigma, penalty = bic_terms(theta.shape[0], delta, tau)
     out = np.full((L, n), np.nan)
     for i, k in zip(*np.nonzero(used), strict=True):
         on = np.flatnonzero(candidates[i, :, k])
         loss = huber(y[:, k] - theta[:, on] @ candidates[i, on, k], delta[k]).sum()
-        out[i, k] = _bic(loss, on.size, sigma[k], penalty[k], tau[k])
+        out[i, k] = bic_from_loss(loss, on.size, sigma[k], penalty[k], tau[k])
     return out
 
 
@@ -267,7 +269,7 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
     m, p = theta.shape
     n = y.shape[1]
     # The criterion's own terms: the bounds below are on its scores.
-    sigma, penalty = _bic_terms(m, delta, tau)
+    sigma, penalty = bic_terms(m, delta, tau)
     every = np.any(theta != 0, axis=0)
     whole_library = theta[:, every]
     basis = np.linalg.qr(whole_library)[0]  # shared by every equation's floor
@@ -277,7 +279,7 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
         weights = np.minimum(1.0, delta[k] / np.maximum(r, np.finfo(float).tiny))
 
         def bic(loss, size, k=k):
-            return _bic(loss, size, sigma[k], penalty[k], tau[k])
+            return bic_from_loss(loss, size, sigma[k], penalty[k], tau[k])
 
         dense = stage.refit(k, every)
         # No support fits better than every term together: the dual bound at the dense
