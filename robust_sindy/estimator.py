@@ -441,6 +441,7 @@ class HuberSINDy(BaseEstimator):
         rows = screen_samples(
             problem, row_flags, deriv.unresolved | absent, measured=deriv.measured,
             method=pilot, screen=self.screen, alternative=alternative,
+            row_noise=None if weak is None else weak.target_noise(),
         )  # fmt: skip
         swapped = None if rows.screening is None else rows.screening.swapped
         if swapped is not None and swapped.any():

@@ -15,6 +15,9 @@ Cases (``--cases``, comma-separated):
 
     python validation/snapshot.py record --cases zoo,heldout,paper --out before.pkl
     python validation/snapshot.py compare before.pkl after.pkl
+
+``--derivatives states`` records only the zoo and held-out cases fitted from the states
+(the ones a change to the weak form or to estimated derivatives can alter).
 """
 
 from __future__ import annotations
@@ -73,14 +76,16 @@ def _paper_case(system, seed):
     }
 
 
-def _cases(names):
+def _cases(names, derivatives=None):
     from robust_sindy import zoo
+
+    kinds = zoo.DERIVATIVES if derivatives is None else derivatives
 
     out = []
     if "zoo" in names:
         for s in zoo.polynomial_systems():
             for f in zoo.FAMILIES:
-                for d in zoo.DERIVATIVES:
+                for d in kinds:
                     out.append(
                         (("zoo", s.name, f, d, 0), _zoo_case, (s, f, d, 0, zoo.ZOO_CONTAMINATION))
                     )
@@ -92,7 +97,7 @@ def _cases(names):
         pick = np.random.default_rng(2026).choice(len(systems), 16, replace=False)
         for i in pick:
             for f in zoo.FAMILIES:
-                for d in zoo.DERIVATIVES:
+                for d in kinds:
                     key = ("heldout", systems[i].name, f, d, 3)
                     out.append((key, _zoo_case, (systems[i], f, d, 3, HELDOUT)))
     if "paper" in names:
@@ -102,8 +107,8 @@ def _cases(names):
     return out
 
 
-def record(names, path, jobs):
-    cases = _cases(names)
+def record(names, path, jobs, derivatives=None):
+    cases = _cases(names, derivatives)
     t0 = time.perf_counter()
     results = Parallel(n_jobs=jobs, verbose=0)(delayed(f)(*a) for _, f, a in cases)
     rec = {key: r for (key, _, _), r in zip(cases, results, strict=True) if r is not None}
@@ -168,13 +173,19 @@ def main(argv=None):
     rec.add_argument("--cases", default="zoo,heldout,paper")
     rec.add_argument("--out", required=True)
     rec.add_argument("--jobs", type=int, default=2)
+    rec.add_argument(
+        "--derivatives", default=None,
+        help="zoo and held-out cases with these derivatives only (comma-separated: "
+        "exact, states); the paper's cases are always recorded when asked for",
+    )  # fmt: skip
     cmp_ = sub.add_parser("compare")
     cmp_.add_argument("before")
     cmp_.add_argument("after")
     cmp_.add_argument("--rtol", type=float, default=1e-12)
     args = parser.parse_args(argv)
     if args.command == "record":
-        record(args.cases.split(","), args.out, args.jobs)
+        kinds = None if args.derivatives is None else args.derivatives.split(",")
+        record(args.cases.split(","), args.out, args.jobs, kinds)
     else:
         sys.exit(1 if compare(args.before, args.after, args.rtol) else 0)
 

@@ -14,6 +14,7 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 import scipy.linalg
+import scipy.sparse
 
 from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
@@ -28,6 +29,7 @@ from .problem import Problem
 __all__ = [
     "GROSS_CUTOFF",
     "SCALE_WINDOW",
+    "SETTLED_EVIDENCE",
     "RowScreen",
     "Screening",
     "gross_ratio",
@@ -50,6 +52,13 @@ def gross_ratio(r, bound, cutoff: float = GROSS_CUTOFF):
 
 #: Rounds of the model-based screen in which flags may also be withdrawn.
 _FREE_ROUNDS = 5
+
+#: With correlated rows (``row_noise``), a round after the free ones that would add no
+#: more flags than Gaussian residuals put beyond the cutoff, but for this probability,
+#: ends the iteration without them: a fit that absorbs much of the rows' noise redraws
+#: the residuals near the cutoff at every refit, and flags that only grow would collect
+#: those draws round after round.
+SETTLED_EVIDENCE = 1e-3
 
 
 #: How many times more some library direction must be excited (mean square per sample)
@@ -106,7 +115,7 @@ class Screening:
         )
 
 
-def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
+def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.ndarray:
     """Residuals ``r`` (m, n) of a Huber fit on the samples ``keep``, those of the kept
     inliers (``|r| <= delta``) divided by ``sqrt(1 - h_i)`` (studentised), or by
     ``1 - h_i`` (deleted: the residual the sample would have if the fit had not seen
@@ -119,20 +128,80 @@ def _leverage_corrected(theta, r, keep, delta, suspect) -> np.ndarray:
     small residual, even studentised): a sample with independent evidence against it
     (the temporal screen flagged it) is vouched for only by a model fitted without it.
     Deleted residuals for every sample would be too strict where there are few samples
-    per term, whose good samples all have large leverage."""
+    per term, whose good samples all have large leverage.
+
+    With ``row_noise`` (a sparse matrix ``D``, rows x noise sources: the rows' noise is
+    ``D e`` for independent ``e`` of equal scale), the rows' noise is correlated (the
+    weak form's overlapping integrals share samples) and a fit absorbs much more of it
+    than ``h_i``: every residual is divided by ``sqrt(F_ii / c)``, ``F_ii`` the variance
+    the rows' noise leaves in it under a least-squares fit on the inliers (``(I - H) D D^T
+    (I - H)`` for the inliers, that of a prediction for the other rows), ``c`` the
+    median of ``diag(D D^T)`` over the kept rows (``F = I - H`` for independent rows of
+    equal noise: the studentised residual); a kept suspect's is the larger of that and
+    its deleted residual."""
     out = r.copy()
     rows = np.flatnonzero(keep)
     a = theta[rows]
     norms = np.linalg.norm(a, axis=0)
     a /= np.where(norms > 0, norms, 1.0)  # a leverage does not depend on column scales
     gram = a.T @ a  # shared: each column's inlier Gram matrix is formed from it
+    if row_noise is not None:
+        row_noise = scipy.sparse.csr_array(row_noise)
+        unit = theta / np.where(norms > 0, norms, 1.0)
+        own = np.asarray(row_noise[rows].multiply(row_noise[rows]).sum(axis=1)).ravel()
+        typical = float(np.median(own)) if own.size else 1.0
     for k in range(r.shape[1]):
         inl = np.abs(r[rows, k]) <= delta[k]
-        lev = _leverages(a[inl], inlier_gram(a, gram, inl[:, None].astype(float))[0])
+        g = inlier_gram(a, gram, inl[:, None].astype(float))[0]
         at = rows[inl]
-        rest = np.maximum(1.0 - lev, np.finfo(float).eps)
-        out[at, k] = r[at, k] / np.where(suspect[at], rest, np.sqrt(rest))
+        if row_noise is None:
+            lev = _leverages(a[inl], g)
+            rest = np.maximum(1.0 - lev, np.finfo(float).eps)
+            out[at, k] = r[at, k] / np.where(suspect[at], rest, np.sqrt(rest))
+            continue
+        # The noise a fit on the inliers leaves in each residual: in the kept inliers'
+        # (I - H) C (I - H), in the other rows' (not fitted, or fitted only through
+        # Huber's clipped score) that of a prediction.
+        w = _hat_factor(g)  # H = (w a_in^T)^T (w a_in^T)
+        q = w @ a[inl].T
+        share = _correlated_share(q, row_noise[at], w @ unit.T, row_noise, typical)
+        out[:, k] = r[:, k] / np.sqrt(share)
+        # Kept suspects: also judged by the model fitted without them (deleted), the
+        # larger of the two.
+        rest = np.maximum(1.0 - np.einsum("ij,ij->j", q, q), np.finfo(float).eps)
+        held = suspect[at]
+        deleted = r[at[held], k] / rest[held]
+        out[at[held], k] = np.where(
+            np.abs(deleted) > np.abs(out[at[held], k]), deleted, out[at[held], k]
+        )
     return out
+
+
+def _hat_factor(gram):
+    """``w`` (rank x p) with ``(w a^T)^T (w a^T)`` the hat matrix of ``a`` (``gram =
+    a^T a``): the inverse Cholesky factor where its condition estimate allows, else the
+    eigenvectors of ``gram`` above the pseudo-inverse's default cut, scaled."""
+    c = conditioned_cholesky(gram, gram.shape[0] * np.finfo(float).eps)
+    if c is not None:
+        return scipy.linalg.solve_triangular(
+            c, np.eye(gram.shape[0]), lower=True, check_finite=False
+        )
+    vals, vecs = np.linalg.eigh(gram)
+    big = vals > max(gram.shape) * np.finfo(float).eps * max(vals.max(), 0.0)
+    return (vecs[:, big] / np.sqrt(vals[big])).T
+
+
+def _correlated_share(q, d_in, z, d, typical: float) -> np.ndarray:
+    """The variance, over ``typical``, that correlated noise leaves in each residual of
+    a least-squares fit on the inliers (hat matrix ``q^T q``, q: rank x inliers, their
+    noise factor ``d_in``, sparse inliers x sources): for a row with ``z = w a^T`` and
+    noise factor ``d`` (sparse), ``|d|^2 - 2 z^T q D_in d^T + z^T (q D_in)(q D_in)^T z``
+    (for the inliers themselves, ``diag((I - H) C (I - H))``, ``C = D D^T``)."""
+    qd = np.asarray((d_in.T @ q.T).T)  # q D_in: rank x sources
+    own = np.asarray(d.multiply(d).sum(axis=1)).ravel()
+    cross = np.einsum("ij,ij->j", z, np.asarray((d @ qd.T).T))
+    inner = np.einsum("ij,ij->j", z, (qd @ qd.T) @ z)
+    return np.maximum(own - 2.0 * cross + inner, np.finfo(float).eps * own) / typical
 
 
 def _leverages(a, gram):
@@ -178,8 +247,11 @@ class _Pilots:
     """The unpenalised Huber pilots of :func:`screen_rows` and the iterations over them,
     on ``theta`` (m, p) and ``y`` (m, n), started from the samples ``first``."""
 
-    def __init__(self, theta, y, first, segments, half, noise, cutoff, rounds, method):
+    def __init__(
+        self, theta, y, first, segments, half, noise, cutoff, rounds, method, row_noise=None
+    ):
         self.theta, self.y, self.first = theta, y, first.copy()
+        self.row_noise = row_noise
         self.segments, self.half, self.noise = segments, half, noise
         self.cutoff, self.rounds, self.method = cutoff, rounds, method
         rms = np.sqrt(np.mean(y**2, axis=0))
@@ -192,7 +264,7 @@ class _Pilots:
         """The same pilots on another library matrix (of the same samples)."""
         return _Pilots(
             theta, self.y, self.first, self.segments, self.half, self.noise, self.cutoff,
-            self.rounds, self.method,
+            self.rounds, self.method, self.row_noise,
         )  # fmt: skip
 
     def bound_of(self, r, scale, coef, with_local: bool = True):
@@ -230,7 +302,16 @@ class _Pilots:
         del theta_k
         r = y - theta @ coef
         r = r - np.median(r[keep], axis=0)
-        return coef, _leverage_corrected(theta, r, keep, delta, ~self.first), delta
+        corrected = _leverage_corrected(theta, r, keep, delta, ~self.first, self.row_noise)
+        return coef, corrected, delta
+
+    def _chance(self, keep) -> int:
+        """The most of the samples ``keep`` that Gaussian residuals put beyond the
+        cutoff in some equation, but for a probability ``SETTLED_EVIDENCE`` (binomial)."""
+        import scipy.stats
+
+        per_sample = -np.expm1(self.y.shape[1] * np.log1p(-2.0 * scipy.stats.norm.sf(self.cutoff)))
+        return int(scipy.stats.binom.isf(SETTLED_EVIDENCE, int(keep.sum()), per_sample))
 
     def scaled(self, r, scale, coef):
         """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
@@ -254,6 +335,11 @@ class _Pilots:
             scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), SCALE_FLOOR * self.rms)
             new = self.scaled(r, scale, coef) > 1
             if done > 1 and (monotone or done > _FREE_ROUNDS):
+                if self.row_noise is not None and (new & ~flags).sum() <= self._chance(keep):
+                    # Correlated rows: each refit redraws the residuals near the cutoff,
+                    # and no more rows crossed it than noise alone gives.
+                    converged = True
+                    break
                 new |= flags
             if np.array_equal(new, flags):
                 converged = True
@@ -303,6 +389,7 @@ def screen_rows(
     method: str = "admm",
     noise=None,
     alternative=None,
+    row_noise=None,
 ) -> Screening:
     """Flag samples whose residual is gross in any equation of a robust pilot.
 
@@ -320,7 +407,9 @@ def screen_rows(
        samples of the same trajectory (when ``segments`` are given; residuals that grow
        smoothly along a fast part of the trajectory are not outliers) in any equation;
        refit the pilot on the kept samples and repeat from 2 until the flags are stable
-       (after five rounds flags are only added, so the iteration cannot oscillate);
+       (after five rounds flags are only added, so the iteration cannot oscillate;
+       with ``row_noise``, a round that would add no more flags than Gaussian residuals
+       put beyond the cutoff, ``SETTLED_EVIDENCE``, ends it without them);
     4. when ``start`` left samples out, the iteration flagged more than 2 % of the
        samples, and some library direction is excited more than 100 times more (mean
        square per sample) by all the samples than by the start, iterate again from
@@ -372,6 +461,13 @@ def screen_rows(
         state's noise level times the column's derivative by that state).
     alternative : tuple (ndarray of int (k,), ndarray (k, p)), optional
         Samples and another row of ``theta`` for each (step 5).
+    row_noise : sparse matrix or array_like (m, s), optional
+        Rows whose noise is correlated: the noise of row ``i`` is ``row_noise[i] @ e``
+        for independent sources ``e`` of equal scale (the weak form's rows, integrals
+        of the same samples).  The kept samples' residuals are then studentised by the
+        share of that noise a fit leaves in them (step 3), which for overlapping rows is
+        far below ``1 - h_i``: without it, a fit that absorbs most of the noise makes
+        the scale too small and good rows gross.
 
     Returns
     -------
@@ -409,7 +505,11 @@ def screen_rows(
             raise ValueError(f"start must be a boolean mask of shape ({m},); got {keep.shape}")
     if keep.sum() < max(2 * p, m // 2):
         keep = np.ones(m, dtype=bool)  # too little left to fit: start from everything
-    pilots = _Pilots(theta, y, keep, segments, half, noise, cutoff, rounds, method)
+    if row_noise is not None:
+        row_noise = scipy.sparse.csr_array(row_noise)
+        if row_noise.shape[0] != m:
+            raise ValueError(f"row_noise must have {m} rows; got {row_noise.shape[0]}")
+    pilots = _Pilots(theta, y, keep, segments, half, noise, cutoff, rounds, method, row_noise)
     first, rms = pilots.first, pilots.rms
     outcome = pilots.iterate(keep)
     flags, scale, done_rounds, converged, r, coef = outcome
@@ -505,6 +605,7 @@ def screen_samples(
     method: str,
     screen: bool,
     alternative=None,
+    row_noise=None,
 ) -> RowScreen:
     """The samples to fit: with ``screen``, those whose derivatives are resolved
     (``unresolved``: estimated derivatives the sampling does not resolve carry a
@@ -514,7 +615,9 @@ def screen_samples(
     residuals only with ``measured`` derivatives: estimated ones add their own errors
     along fast excursions, where the carried noise is largest.  ``alternative`` (samples,
     and their rows in user units) is passed on to :func:`screen_rows`, whose
-    ``swapped`` then marks those samples (of all) kept with it."""
+    ``swapped`` then marks those samples (of all) kept with it.  ``row_noise`` (sparse,
+    samples x sources) makes the screen studentise for correlated rows
+    (:func:`screen_rows`)."""
     m = problem.shape[0]
     if not screen:
         return RowScreen(np.ones(m, dtype=bool), None)
@@ -534,6 +637,7 @@ def screen_samples(
         method=method,
         noise=None if noise is None else noise.rows(keep),
         alternative=other,
+        row_noise=None if row_noise is None else scipy.sparse.csr_array(row_noise)[keep],
     )
     outliers, start, swapped = (np.zeros(m, dtype=bool) for _ in range(3))
     outliers[keep], start[keep], swapped[keep] = found.outliers, found.start, found.swapped

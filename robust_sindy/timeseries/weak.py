@@ -9,8 +9,8 @@ integration by parts turns :math:`\\dot x_k = \\Theta(x) \\xi_k` into
 
 exactly, whatever the support: no derivative is estimated, and the noise of the states
 is averaged over the support.  With quadrature weights on the sample times (product
-integration: the samples interpolated by local cubics, their product with the test
-function integrated exactly, which is accurate on irregular times) row ``r`` is
+integration: the samples replaced by local least-squares polynomials, their product
+with the test function integrated exactly, which is accurate on irregular times) row ``r`` is
 ``b_r = -sum_i W'_ri x(t_i)`` and ``G_r = sum_i W_ri Theta(x(t_i))``, and each
 equation solves the same Huber + L1 problem on ``(G, b)`` (SPEC §9).
 
@@ -36,12 +36,16 @@ from dataclasses import dataclass
 
 import numpy as np
 import scipy.signal
+import scipy.sparse
 
 from .temporal import TemporalScreening
 from .trajectories import Trajectories, gapless_pieces, slices
 
 __all__ = [
     "HALF_AMPLITUDE",
+    "LOCAL_DEGREE",
+    "LOCAL_SAMPLES",
+    "MAX_LEBESGUE",
     "MIN_SUPPORT_SAMPLES",
     "POWER",
     "Support",
@@ -62,11 +66,17 @@ NOISE_FLOOR_FACTOR = 10.0
 #: integration's cubics are then accurate to well below the noise of nearly noise-free
 #: states (tested on Lorenz, uniform and irregular times).
 MIN_SUPPORT_SAMPLES = 15
-#: The product integration's cubic through four samples may amplify their noise at
-#: most this many times on its interval (its Lebesgue constant there: 1.25 for uniform
-#: samples, 2.6 for a gap four times its neighbours, hundreds where two of the four
-#: samples nearly coincide); where clustered sample times leave no such cubic, the
-#: interval's values are the straight line between its ends (constant 1).
+#: The product integration replaces the samples around each interval by a polynomial
+#: of degree ``LOCAL_DEGREE`` fitted by least squares to the ``LOCAL_SAMPLES`` samples
+#: around it (half on each side, inside the record's gapless piece).  A least-squares fit
+#: over more samples than it has coefficients does not swing where sample times cluster,
+#: as an interpolating cubic through four of them does (on uniformly random times it
+#: amplified the noise hundreds of times, and a straight line in its place cost up to 10 %
+#: of an integral on a chaotic record).
+LOCAL_SAMPLES, LOCAL_DEGREE = 8, 4
+#: The local fit may amplify the samples' noise at most this many times on its interval
+#: (its Lebesgue constant there: about 1.3 for uniform samples); where clustered sample
+#: times give it more, the degree is lowered until it does not (a straight line last).
 MAX_LEBESGUE = 4.0
 #: Centres of consecutive test functions are this fraction of ``h`` apart (or closer,
 #: down to ``MIN_SPACING``, where the records are short for the library).
@@ -74,8 +84,9 @@ SPACING, MIN_SPACING = 0.25, 0.0625
 
 
 #: Gauss-Legendre nodes and weights on [0, 1] for the product integration (exact for
-#: the test function, a polynomial of degree 2 POWER on its support, times a cubic).
-_NODES, _NODE_WEIGHTS = np.polynomial.legendre.leggauss(POWER + 3)
+#: the test function, a polynomial of degree 2 POWER on its support, times the local
+#: polynomial).
+_NODES, _NODE_WEIGHTS = np.polynomial.legendre.leggauss(POWER + LOCAL_DEGREE // 2 + 1)
 _NODES, _NODE_WEIGHTS = (_NODES + 1.0) / 2.0, _NODE_WEIGHTS / 2.0
 
 
@@ -85,62 +96,33 @@ def _bump(s: np.ndarray, h: float):
     return base**POWER, -2.0 * POWER * s * base ** (POWER - 1) / h
 
 
-def _stencils(t: np.ndarray, first: int, last: int, shift: int = 1) -> np.ndarray:
-    """For each interval ``[t_j, t_j+1]``, ``first <= j < last``, four samples for its
-    cubic: ``j - shift .. j - shift + 3``, shifted inside the record at its ends."""
-    j = np.arange(first, last)
-    start = np.clip(j - shift, 0, max(t.size - 4, 0))
-    return start[:, None] + np.arange(min(4, t.size))[None, :]
-
-
-def _interpolation(t: np.ndarray, first: int, last: int, nodes: np.ndarray):
-    """The stencil (J x 4) and interpolation basis at ``nodes`` (J x g x 4) of each
-    interval ``first <= j < last``: of the three cubics whose four samples include the
-    interval's ends, the one with the smallest Lebesgue constant on the interval (the
-    most its values can amplify the samples' noise), or the straight line through the
-    interval's ends (constant 1) where even that one's exceeds ``MAX_LEBESGUE``
-    (clustered sample times, where a cubic through them swings)."""
-    best_stencil, best_basis, best = None, None, None
-    for shift in (1, 0, 2):  # the centred cubic first: it wins ties
-        stencil = _stencils(t, first, last, shift)
-        basis = _lagrange(t, stencil, nodes)
-        lebesgue = np.abs(basis).sum(axis=-1).max(axis=-1)
-        if best is None:
-            best_stencil, best_basis, best = stencil, basis, lebesgue
-            continue
-        better = lebesgue < best - 1e-12
-        best_stencil = np.where(better[:, None], stencil, best_stencil)
-        best_basis = np.where(better[:, None, None], basis, best_basis)
-        best = np.minimum(best, lebesgue)
-    if t.size < 4:
-        return best_stencil, best_basis
-    line = best > MAX_LEBESGUE
-    if line.any():
-        j = np.arange(first, last)[line]
-        at = j[:, None] - best_stencil[line][:, :1]  # the interval's left end in its stencil
-        frac = (nodes[line] - t[j][:, None]) / (t[j + 1] - t[j])[:, None]
-        basis = np.zeros((int(line.sum()), nodes.shape[1], best_stencil.shape[1]))
-        rows = np.arange(basis.shape[0])[:, None]
-        cols = np.arange(nodes.shape[1])[None, :]
-        basis[rows, cols, at] = 1.0 - frac
-        basis[rows, cols, at + 1] = frac
-        best_basis = best_basis.copy()
-        best_basis[line] = basis
-    return best_stencil, best_basis
-
-
-def _lagrange(t: np.ndarray, stencil: np.ndarray, nodes: np.ndarray) -> np.ndarray:
-    """The cubic Lagrange basis of each interval's ``stencil`` (J x 4) at its ``nodes``
-    (J x g), in time relative to the interval (J x g x 4)."""
+def _local_fits(t: np.ndarray, piece: slice):
+    """For each interval ``[t_j, t_j+1]`` of the gapless ``piece`` of the record: the
+    stencil (J x w, sample indices: the ``LOCAL_SAMPLES`` around the interval, shifted
+    inside the piece at its ends), the map (J x (d + 1) x w) from the stencil's values to
+    the coefficients of the local least-squares polynomial in ``(tau - t_j) / span_j``,
+    and ``span`` (J,), the stencil's time span.  The degree is ``LOCAL_DEGREE``, lowered
+    per interval where the fit's Lebesgue constant on the interval exceeds
+    ``MAX_LEBESGUE`` (its missing coefficients are zero)."""
+    lo, hi = piece.start, piece.stop
+    width = min(LOCAL_SAMPLES, hi - lo)
+    j = np.arange(lo, hi - 1)
+    start = np.clip(j - (width // 2 - 1), lo, hi - width)
+    stencil = start[:, None] + np.arange(width)[None, :]
     ts = t[stencil]
-    origin = ts[:, :1]
-    ts, x = ts - origin, nodes - origin
-    out = np.ones((*nodes.shape, ts.shape[1]))
-    for q in range(ts.shape[1]):
-        for r in range(ts.shape[1]):
-            if r != q:
-                out[..., q] *= (x - ts[:, r : r + 1]) / (ts[:, q : q + 1] - ts[:, r : r + 1])
-    return out
+    span = ts[:, -1] - ts[:, 0]
+    s = (ts - t[j][:, None]) / span[:, None]
+    inside = (t[j + 1] - t[j])[:, None] / span[:, None] * _NODES[None, :]  # (J, g)
+    top = min(LOCAL_DEGREE, width - 1)
+    fits = np.zeros((j.size, top + 1, width))
+    settled = np.zeros(j.size, dtype=bool)
+    for degree in range(top, 0, -1):
+        fit = np.linalg.pinv(s[..., None] ** np.arange(degree + 1))  # (J, d + 1, w)
+        lebesgue = np.abs((inside[..., None] ** np.arange(degree + 1)) @ fit).sum(axis=-1)
+        take = ~settled & ((lebesgue.max(axis=-1) <= MAX_LEBESGUE) | (degree == 1))
+        fits[take, : degree + 1] = fit[take]
+        settled |= take
+    return stencil, fits, span
 
 
 def weight_functions(t: np.ndarray, h: float, spacing: float = SPACING):
@@ -151,31 +133,36 @@ def weight_functions(t: np.ndarray, h: float, spacing: float = SPACING):
     (:func:`~robust_sindy.timeseries.trajectories.gapless_pieces`), in each piece
     between them.
 
-    Product integration: the sampled values are taken as the cubic through the four
-    samples around each interval, and its product with the (polynomial) test function is
-    integrated exactly (Gauss-Legendre), so that irregular sample times cost accuracy
-    only through the values' own smoothness.  ``phi @ v`` approximates
-    ``int phi(t) v(t) dt``.
+    Product integration: the sampled values are taken as the local least-squares
+    polynomial around each interval (``LOCAL_SAMPLES`` samples, degree
+    ``LOCAL_DEGREE``), and its product with the (polynomial) test function is integrated
+    exactly (Gauss-Legendre), so that irregular sample times cost accuracy only through
+    the values' own smoothness.  ``phi @ v`` approximates ``int phi(t) v(t) dt``.
     """
     m = t.size
-    centres = []
+    rows = []  # (centre, the piece's local fits)
     for piece in gapless_pieces(t):  # no support reaches across a gap in the record
         lo, hi = t[piece][0] + h, t[piece][-1] - h
-        if hi >= lo and m >= 4:
+        if hi >= lo and piece.stop - piece.start >= 2:
             count = int(np.floor((hi - lo) / (spacing * h) + 1e-9)) + 1
-            centres.append(np.linspace(lo, hi, count))
-    centres = np.concatenate(centres) if centres else np.zeros(0)
-    count = centres.size
-    phi, dphi = np.zeros((count, m)), np.zeros((count, m))
-    for r, c in enumerate(centres):
-        first = max(int(np.searchsorted(t, c - h, side="right")) - 1, 0)
-        last = min(int(np.searchsorted(t, c + h, side="left")), m - 1)
+            fits = _local_fits(t, piece)
+            rows.extend((c, piece.start, fits) for c in np.linspace(lo, hi, count))
+    centres = np.array([c for c, _, _ in rows])
+    phi, dphi = np.zeros((len(rows), m)), np.zeros((len(rows), m))
+    for r, (c, offset, (stencils, fits, spans)) in enumerate(rows):
+        # The support's intervals, inside the piece (its ends may round past them).
+        first = max(int(np.searchsorted(t, c - h, side="right")) - 1, offset)
+        last = min(int(np.searchsorted(t, c + h, side="left")), offset + spans.size)
         a = np.maximum(t[first:last], c - h)
         b = np.minimum(t[first + 1 : last + 1], c + h)
         nodes = a[:, None] + (b - a)[:, None] * _NODES[None, :]
         weights = (b - a)[:, None] * _NODE_WEIGHTS[None, :]
-        stencil, basis = _interpolation(t, first, last, nodes)  # (J, 4), (J, g, 4)
+        at = slice(first - offset, last - offset)  # the intervals' rows in the piece's fits
+        local = (nodes - t[first:last, None]) / spans[at, None]
+        powers = local[..., None] ** np.arange(fits.shape[1])  # (J, g, d + 1)
+        basis = powers @ fits[at]  # (J, g, w): the samples' shares at the nodes
         value, slope = _bump((nodes - c) / h, h)
+        stencil = stencils[at]
         for out, f in ((phi, value), (dphi, slope)):
             shares = np.einsum("jg,jgq->jq", f * weights, basis)
             np.add.at(out[r], stencil.ravel(), shares.ravel())
@@ -258,6 +245,9 @@ class WeakRows:
         Per trajectory, the samples under each test function.
     weights : list of ndarray (K_i, m_i)
         Per trajectory, the test functions times the quadrature weights (``phi``).
+    slopes : list of ndarray (K_i, m_i)
+        Per trajectory, the test functions' derivatives times the quadrature weights
+        (``b = -slopes @ states``).
     """
 
     G: np.ndarray
@@ -266,6 +256,7 @@ class WeakRows:
     segments: list
     support: list
     weights: list
+    slopes: list
 
     @property
     def n_rows(self) -> int:
@@ -277,6 +268,15 @@ class WeakRows:
         for seg, sup in zip(data.segments, self.support, strict=True):
             out.append(sup.astype(float) @ entry_flags[seg].any(axis=1).astype(float) > 0)
         return np.concatenate(out) if out else np.zeros(0, dtype=bool)
+
+    def target_noise(self) -> scipy.sparse.csr_array:
+        """How the samples' noise enters the targets: ``b``'s noise is this sparse
+        matrix (rows x samples, block diagonal over the trajectories) times the
+        samples' noise, so neighbouring rows, which integrate the same samples, share
+        it (the row screen studentises by it)."""
+        return scipy.sparse.block_diag(
+            [scipy.sparse.csr_array(d) for d in self.slopes], format="csr"
+        )
 
     def covered(self, keep: np.ndarray) -> np.ndarray:
         """Samples under at least one of the rows ``keep`` (bool, K)."""
@@ -318,13 +318,14 @@ def weak_rows(
     spacing = SPACING
     if min_rows > 0 and room > 0:
         spacing = float(np.clip(room / (h * min_rows), MIN_SPACING, SPACING))
-    Gs, bs, supports, weights, counts = [], [], [], [], []
+    Gs, bs, supports, weights, slopes, counts = [], [], [], [], [], []
     for seg, t in zip(data.segments, data.t, strict=True):
         phi, dphi, _ = weight_functions(t, h, spacing)
         Gs.append(phi @ theta[seg])
         bs.append(-dphi @ states[seg])
         supports.append(phi != 0)
         weights.append(phi)
+        slopes.append(dphi)
         counts.append(phi.shape[0])
     G, b = np.vstack(Gs), np.vstack(bs)
-    return WeakRows(G, b, float(h), slices(counts), supports, weights)
+    return WeakRows(G, b, float(h), slices(counts), supports, weights, slopes)
