@@ -15,6 +15,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import scipy.linalg
 import scipy.sparse
+import scipy.stats
 
 from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
@@ -308,8 +309,6 @@ class _Pilots:
     def _chance(self, keep) -> int:
         """The most of the samples ``keep`` that Gaussian residuals put beyond the
         cutoff in some equation, but for a probability ``SETTLED_EVIDENCE`` (binomial)."""
-        import scipy.stats
-
         per_sample = -np.expm1(self.y.shape[1] * np.log1p(-2.0 * scipy.stats.norm.sf(self.cutoff)))
         return int(scipy.stats.binom.isf(SETTLED_EVIDENCE, int(keep.sum()), per_sample))
 
@@ -464,10 +463,10 @@ def screen_rows(
     row_noise : sparse matrix or array_like (m, s), optional
         Rows whose noise is correlated: the noise of row ``i`` is ``row_noise[i] @ e``
         for independent sources ``e`` of equal scale (the weak form's rows, integrals
-        of the same samples).  The kept samples' residuals are then studentised by the
-        share of that noise a fit leaves in them (step 3), which for overlapping rows is
-        far below ``1 - h_i``: without it, a fit that absorbs most of the noise makes
-        the scale too small and good rows gross.
+        of the same samples).  Every residual is then studentised by the share of that
+        noise a fit leaves in it (step 3), which for overlapping rows is far below
+        ``1 - h_i``: without it, a fit that absorbs most of the noise makes the scale
+        too small and good rows gross.
 
     Returns
     -------

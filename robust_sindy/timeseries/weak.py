@@ -10,8 +10,8 @@ integration by parts turns :math:`\\dot x_k = \\Theta(x) \\xi_k` into
 exactly, whatever the support: no derivative is estimated, and the noise of the states
 is averaged over the support.  With quadrature weights on the sample times (product
 integration: the samples replaced by local least-squares polynomials, their product
-with the test function integrated exactly, which is accurate on irregular times) row ``r`` is
-``b_r = -sum_i W'_ri x(t_i)`` and ``G_r = sum_i W_ri Theta(x(t_i))``, and each
+with the test function integrated exactly, which is accurate on irregular times) row
+``r`` is ``b_r = -sum_i W'_ri x(t_i)`` and ``G_r = sum_i W_ri Theta(x(t_i))``, and each
 equation solves the same Huber + L1 problem on ``(G, b)`` (SPEC §9).
 
 * Test functions: :math:`\\phi(t) = (1 - s^2)^4`, :math:`s = (t - c)/h`, centres every
@@ -63,8 +63,8 @@ HALF_AMPLITUDE = 3.798
 #: A state's spectrum meets its noise at this many times the white-noise floor.
 NOISE_FLOOR_FACTOR = 10.0
 #: The support holds at least this many samples on each side of its centre: the product
-#: integration's cubics are then accurate to well below the noise of nearly noise-free
-#: states (tested on Lorenz, uniform and irregular times).
+#: integration's local fits are then accurate to well below the noise of nearly
+#: noise-free states (tested on Lorenz, uniform and irregular times).
 MIN_SUPPORT_SAMPLES = 15
 #: The product integration replaces the samples around each interval by a polynomial
 #: of degree ``LOCAL_DEGREE`` fitted by least squares to the ``LOCAL_SAMPLES`` samples
