@@ -146,11 +146,10 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
     norms = np.linalg.norm(a, axis=0)
     a /= np.where(norms > 0, norms, 1.0)  # a leverage does not depend on column scales
     gram = a.T @ a  # shared: each column's inlier Gram matrix is formed from it
-    if row_noise is not None:
-        row_noise = scipy.sparse.csr_array(row_noise)
+    if row_noise is not None:  # a sparse array (screen_rows converts it)
         unit = theta / np.where(norms > 0, norms, 1.0)
-        own = np.asarray(row_noise[rows].multiply(row_noise[rows]).sum(axis=1)).ravel()
-        typical = float(np.median(own)) if own.size else 1.0
+        own = np.asarray(row_noise.multiply(row_noise).sum(axis=1)).ravel()  # diag(D D^T)
+        typical = float(np.median(own[rows])) if rows.size else 1.0
     for k in range(r.shape[1]):
         inl = np.abs(r[rows, k]) <= delta[k]
         g = inlier_gram(a, gram, inl[:, None].astype(float))[0]
@@ -165,7 +164,7 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
         # Huber's clipped score) that of a prediction.
         w = _hat_factor(g)  # H = (w a_in^T)^T (w a_in^T)
         q = w @ a[inl].T
-        share = _correlated_share(q, row_noise[at], w @ unit.T, row_noise, typical)
+        share = _correlated_share(q, row_noise[at], w @ unit.T, row_noise, own) / typical
         out[:, k] = r[:, k] / np.sqrt(share)
         # Kept suspects: also judged by the model fitted without them (deleted), the
         # larger of the two.
@@ -192,17 +191,16 @@ def _hat_factor(gram):
     return (vecs[:, big] / np.sqrt(vals[big])).T
 
 
-def _correlated_share(q, d_in, z, d, typical: float) -> np.ndarray:
-    """The variance, over ``typical``, that correlated noise leaves in each residual of
-    a least-squares fit on the inliers (hat matrix ``q^T q``, q: rank x inliers, their
-    noise factor ``d_in``, sparse inliers x sources): for a row with ``z = w a^T`` and
-    noise factor ``d`` (sparse), ``|d|^2 - 2 z^T q D_in d^T + z^T (q D_in)(q D_in)^T z``
+def _correlated_share(q, d_in, z, d, own) -> np.ndarray:
+    """The variance that correlated noise leaves in each residual of a least-squares fit
+    on the inliers (hat matrix ``q^T q``, q: rank x inliers, their noise factor
+    ``d_in``, sparse inliers x sources): for a row with ``z = w a^T``, noise factor ``d``
+    (sparse) and ``own = |d|^2``, ``|d|^2 - 2 z^T q D_in d^T + z^T (q D_in)(q D_in)^T z``
     (for the inliers themselves, ``diag((I - H) C (I - H))``, ``C = D D^T``)."""
     qd = np.asarray((d_in.T @ q.T).T)  # q D_in: rank x sources
-    own = np.asarray(d.multiply(d).sum(axis=1)).ravel()
     cross = np.einsum("ij,ij->j", z, np.asarray((d @ qd.T).T))
     inner = np.einsum("ij,ij->j", z, (qd @ qd.T) @ z)
-    return np.maximum(own - 2.0 * cross + inner, np.finfo(float).eps * own) / typical
+    return np.maximum(own - 2.0 * cross + inner, np.finfo(float).eps * own)
 
 
 def _leverages(a, gram):
