@@ -32,11 +32,7 @@ def local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
     if w % 2 and a.ndim == 2 and not np.isnan(a).any():
         # Odd windows without NaN: the running median of each column (the same middle
         # value), the windows at the ends shifted inside.
-        med = running_median(a, w)
-        h = w // 2
-        med[:h] = np.median(a[:w], axis=0)
-        med[m - h :] = np.median(a[m - w :], axis=0)
-        return 1.4826 * med
+        return 1.4826 * running_median(a, w)
     start = np.clip(np.arange(m) - half_width, 0, m - w)
     windows = np.lib.stride_tricks.sliding_window_view(a, w, axis=0)  # (m - w + 1, n, w)
     if np.isnan(a).any():
@@ -84,12 +80,21 @@ def smooth_local_scale(values: np.ndarray, half_width: int) -> np.ndarray:
 
 
 def running_median(a: np.ndarray, size: int) -> np.ndarray:
-    """Running median of each column of ``a`` (m, n) over ``size`` samples, the ends
-    padded by their nearest value (column by column: the one-dimensional filter is the
-    fast one)."""
+    """Running median of each column of ``a`` (m, n) over ``size`` samples (odd), the
+    windows at the ends shifted inside the array (column by column: the one-dimensional
+    filter is the fast one); an array no longer than the window has its median
+    everywhere.  Padding the ends by their nearest value instead would
+    make the first and the last value more than half of their windows: their own
+    medians, whatever they are."""
     out = np.empty_like(a)
     for k in range(a.shape[1]):
         out[:, k] = scipy.ndimage.median_filter(a[:, k], size=size, mode="nearest")
+    m, h = a.shape[0], size // 2
+    if m <= size:  # one window: the whole array
+        out[:] = np.median(a, axis=0)
+    elif h > 0:
+        out[:h] = np.median(a[:size], axis=0)
+        out[m - h :] = np.median(a[m - size :], axis=0)
     return out
 
 

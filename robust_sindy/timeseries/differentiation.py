@@ -286,6 +286,7 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
             continue
         sk = None if scale is None else scale[[k]]
         prev = _local_fit(x2[:, [k]], t, usable[:, [k]], [steps[0]], degree, sk)[:, 0]
+        w_prev = None if sk is None else _derivative_operator(t, usable[:, k], steps[0], degree)
         # The samples the narrowest derivative's fit on the library does not reject
         # (gross errors the temporal screen missed would otherwise bend the projection).
         test = _fitted_rows(a, prev, rows)
@@ -305,11 +306,34 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
             bound = 3.0 * float(robust_scale(r))
             r = np.clip(r, -bound, bound)
             cov = correlation_time(r)[0] * (u * r[:, None] ** 2).T @ u
+            if sk is not None:
+                # The change's own noise, which no test can tell from a bias: the two
+                # estimators' weights on the states' noise (large where the narrower
+                # window's samples crowd together, as at irregular times).
+                w_cur = _derivative_operator(t, usable[:, k], h, degree)
+                spread = (w_cur - w_prev)[test].T @ u
+                cov += float(sk[0]) ** 2 * (spread.T @ spread)
+                w_prev = w_cur
             wald = float(c @ np.linalg.lstsq(cov, c, rcond=None)[0])
             if not wald <= bar:
                 break
             out[k], prev = h, cur
     return out
+
+
+def _derivative_operator(t, usable, half_window: int, degree: int):
+    """The sparse matrix (m, m) that maps the states of one component to the
+    least-squares derivative :func:`_local_fit` gives without a noise scale (the
+    ``2 half_window + 1`` usable samples nearest each sample; all samples where fewer
+    are usable)."""
+    import scipy.sparse
+
+    m, size = usable.size, 2 * int(half_window) + 1
+    ok = usable if usable.sum() >= size else np.ones(m, dtype=bool)
+    idx = _nearest_usable(ok, size)
+    w = _window_weights(t, idx, degree)
+    rows = np.repeat(np.arange(m), size)
+    return scipy.sparse.csr_matrix((w.ravel(), (rows, idx.ravel())), shape=(m, m))
 
 
 def _window_weights(t, idx, degree):

@@ -355,6 +355,11 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
         SCALE_FLOOR * np.maximum(x.std(axis=0), np.finfo(float).tiny),
         _ROUNDING_FLOOR * np.abs(x).max(axis=0),
     )
+    # The fits see the states about their medians: a state's offset is then not
+    # carried through the ridge of their systems, whose rounding an extrapolation to
+    # the ends of the record would amplify above the rounding floor.
+    given, centre = x, np.median(x, axis=0)
+    x = x - centre
 
     def gross(err):
         # The running median of the errors is the fit's smooth bias (e.g. along a fast
@@ -398,7 +403,7 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
         flags &= ~drop
         ratio, pred, err = ratio_of(flags)
         flags &= ratio > 1
-    return flags, np.where(flags, pred, x), _unflagged_scale(err, flags)
+    return flags, np.where(flags, pred + centre, given), _unflagged_scale(err, flags)
 
 
 def temporal_screen(
