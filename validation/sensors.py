@@ -12,7 +12,8 @@ the same contamination (``zoo.contaminate_family``, ``zoo.sample_times``), on
   cycle (a cubic library; on the cycle itself ``x^3 + x y^2 = x`` and the terms alias);
 * ``Lorenz96_20``: twenty channels, where 56 % of the samples hold a glitched entry;
 
-with exact derivatives and from the states alone, ``HuberSINDy()`` with its defaults
+and the glitches at uniformly random times together (``glitches+irregular``), with
+exact derivatives and from the states alone, ``HuberSINDy()`` with its defaults
 beside PySINDy's STLSQ (its default threshold, the samples with a missing entry left
 out, the sample times as an array).
 
@@ -36,6 +37,9 @@ from robust_sindy import HuberSINDy, PolynomialLibrary, zoo
 from robust_sindy.flows import lorenz96, write_rows
 
 SYSTEMS = ("DuffingForced", "Hopf", "Lorenz96_20")
+#: The zoo's sensor families, and glitches at uniformly random times (a logger's own
+#: time stamps and a channel's glitches together).
+FAMILIES = (*zoo.SENSOR_FAMILIES, "glitches+irregular")
 #: Every system with exact derivatives and from the states alone.
 DERIVATIVES = {name: ("exact", "states") for name in SYSTEMS}
 
@@ -119,15 +123,24 @@ def _pysindy(s, t, x, u, x_dot):
     return np.asarray(model.coefficients()).T
 
 
+def _family_index(family: str) -> int:
+    """The family's part of a case's seed: its index among the zoo's families, the
+    combined ones after them."""
+    if family in zoo.ALL_FAMILIES:
+        return zoo.ALL_FAMILIES.index(family)
+    return len(zoo.ALL_FAMILIES) + FAMILIES.index(family)
+
+
 def run_case(name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000):
     s = _system(name)
     rng = np.random.default_rng(
-        [seed, zoo.ALL_FAMILIES.index(family), zoo.DERIVATIVES.index(derivatives), len(name)]
+        [seed, _family_index(family), zoo.DERIVATIVES.index(derivatives), len(name)]
     )
-    times = zoo.sample_times(family, n_samples, s.dt, rng)
+    outliers, _, timing = family.partition("+")
+    times = zoo.sample_times(timing or family, n_samples, s.dt, rng)
     t = s.dt * np.arange(n_samples) if times is None else times
     x, u, dx = _simulate(s, t, seed)
-    noisy, _ = zoo.contaminate_family(x, family, rng)
+    noisy, _ = zoo.contaminate_family(x, outliers, rng)
     x_dot = dx if derivatives == "exact" else None
     rows = []
     for method in ("huber", "stlsq"):
@@ -164,14 +177,14 @@ def run_case(name: str, family: str, derivatives: str, seed: int, n_samples: int
 def table(rows: list[dict]) -> str:
     lines = [
         "| system | states | derivatives | "
-        + " | ".join(zoo.SENSOR_FAMILIES)
+        + " | ".join(FAMILIES)
         + " | failures warned | right but warned |",
-        "|" + "---|" * (len(zoo.SENSOR_FAMILIES) + 5),
+        "|" + "---|" * (len(FAMILIES) + 5),
     ]
     for name in SYSTEMS:
         for der in zoo.DERIVATIVES:
             cells = []
-            for fam in zoo.SENSOR_FAMILIES:
+            for fam in FAMILIES:
                 got = {
                     m: [r["exact"] for r in rows if (r["system"], r["derivatives"], r["family"],
                                                      r["method"]) == (name, der, fam, m)]
@@ -207,7 +220,7 @@ def main(argv=None):
     parser.add_argument("--out", default="validation/results/sensors")
     args = parser.parse_args(argv)
     cases = [
-        (name, fam, der, seed) for name in SYSTEMS for fam in zoo.SENSOR_FAMILIES
+        (name, fam, der, seed) for name in SYSTEMS for fam in FAMILIES
         for der in DERIVATIVES[name] for seed in range(args.seeds)
     ]  # fmt: skip
     from tqdm import tqdm
@@ -220,7 +233,8 @@ def main(argv=None):
         "# Sensor families on a control input, a transient and twenty channels",
         "",
         f"Command: `python validation/sensors.py --seeds {args.seeds}`. 2000 samples; "
-        "families and contamination of `robust_sindy.zoo` (`SENSOR_FAMILIES`). Cells: "
+        "families and contamination of `robust_sindy.zoo` (`SENSOR_FAMILIES`), and "
+        "`glitches+irregular`: the glitches at uniformly random times. Cells: "
         "exact support of `HuberSINDy()` over the seeds (PySINDy STLSQ at its default "
         "threshold, given the same records). The last columns: of the cases "
         "`HuberSINDy()` got wrong, how many warned; of those it got right, how many "
