@@ -200,6 +200,14 @@ def test_library_guard_counts_the_change_s_own_noise_at_random_times(noise):
             )
             errors.append(np.std(d - exact, axis=0).max())
         ratios.append(errors[1] / errors[0])
+        # The same windows in other units of the states and of time, with an offset.
+        xs, ts = (x + 5.0) * 1e3, t * 1e-2 + 7.0
+        other = temporal_screen(xs, ts)
+        theta_s = PolynomialLibrary(degree=3).fit_transform(other.repaired)
+        again = choose_half_window(
+            other.repaired, ts, ~other.flags, library=theta_s, scale=other.scale
+        )
+        assert np.array_equal(again, half)
     assert max(ratios) < 2.0, ratios
 
 

@@ -186,8 +186,10 @@ def choose_half_window(
     above, only while the change of the derivative has no component along the
     library: the Wald statistic of the least-squares projection of that change on the
     library's columns, with its sandwich covariance (the residuals' correlation time
-    counted, as in :func:`robust_sindy.selection.significance.robust_t`), stays below
-    the ``1 - BIAS_LEVEL`` quantile of its chi-square distribution; the samples tested
+    counted, as in :func:`robust_sindy.selection.significance.robust_t`) plus the
+    change's own noise given ``scale`` (the two estimators' least-squares weights on
+    noise of that level: at irregular times the narrower window's is heavy-tailed),
+    stays below the ``1 - BIAS_LEVEL`` quantile of its chi-square distribution; the samples tested
     are those of ``rows`` whose narrowest derivative the library fits within 3.5 robust
     scales (a gross error the temporal screen missed would bend the projection and
     inflate the errors the change is measured against).  The test is
