@@ -161,6 +161,7 @@ def _agree(theta, y, delta, lam, con, solver="clarabel"):
     return fast, ref
 
 
+@pytest.mark.parametrize("solver", ["clarabel", "osqp"])
 @settings(
     max_examples=20, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
 )
@@ -170,21 +171,10 @@ def _agree(theta, y, delta, lam, con, solver="clarabel"):
     p=st.integers(2, 8),
     n=st.integers(1, 4),
 )
-def test_the_fast_path_agrees_with_the_reference_on_random_constrained_problems(seed, m, p, n):
-    _agree(*_random_problem(seed, m, p, n))
-
-
-@settings(
-    max_examples=8, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
-)
-@given(
-    seed=st.integers(0, 10_000),
-    m=st.integers(40, 800),
-    p=st.integers(2, 8),
-    n=st.integers(1, 4),
-)
-def test_the_fast_path_agrees_with_the_osqp_reference_on_random_constrained_problems(seed, m, p, n):
-    _agree(*_random_problem(seed, m, p, n), solver="osqp")
+def test_the_fast_path_agrees_with_the_reference_on_random_constrained_problems(
+    solver, seed, m, p, n
+):
+    _agree(*_random_problem(seed, m, p, n), solver=solver)
 
 
 @settings(

@@ -15,9 +15,9 @@ from robust_sindy.timeseries.temporal import temporal_screen
 from .conftest import van_der_pol
 
 
-def _smooth(m=1500, seed=0, noise=1e-3):
+def _smooth(m=1500, seed=0, noise=1e-3, t=None):
     rng = np.random.default_rng(seed)
-    t = np.linspace(0.0, 15.0, m)
+    t = np.linspace(0.0, 15.0, m) if t is None else t
     x = np.column_stack([np.sin(t), np.cos(2.3 * t) + 0.3 * t, np.exp(np.sin(0.7 * t))])
     return t, x, x + noise * rng.normal(size=x.shape)
 
@@ -45,12 +45,10 @@ def test_temporal_screen_flags_spikes_in_the_first_and_last_samples(irregular):
     flagged.  Over several draws, every glitch at either end is flagged."""
     missed = []
     for seed in range(4):
-        t, _, x = _smooth(seed=seed)
+        times = None
         if irregular:
-            rng = np.random.default_rng(seed + 20)
-            t = np.sort(rng.uniform(t[0], t[-1], t.size))
-            x = np.column_stack([np.sin(t), np.cos(2.3 * t) + 0.3 * t, np.exp(np.sin(0.7 * t))])
-            x = x + 1e-3 * rng.normal(size=x.shape)
+            times = np.sort(np.random.default_rng(seed + 20).uniform(0.0, 15.0, 1500))
+        t, _, x = _smooth(seed=seed, t=times)
         rng = np.random.default_rng(seed + 30)
         # The glitches of the zoo: 3 to 20 standard deviations of the state.
         sizes = np.exp(rng.uniform(np.log(3.0), np.log(20.0), (2, 3))) * x.std(axis=0)

@@ -86,13 +86,13 @@ def running_median(a: np.ndarray, size: int) -> np.ndarray:
     everywhere.  Padding the ends by their nearest value instead would
     make the first and the last value more than half of their windows: their own
     medians, whatever they are."""
+    m, h = a.shape[0], size // 2
+    if m <= size:  # one window: the whole array
+        return np.broadcast_to(np.median(a, axis=0), a.shape).astype(a.dtype)
     out = np.empty_like(a)
     for k in range(a.shape[1]):
         out[:, k] = scipy.ndimage.median_filter(a[:, k], size=size, mode="nearest")
-    m, h = a.shape[0], size // 2
-    if m <= size:  # one window: the whole array
-        out[:] = np.median(a, axis=0)
-    elif h > 0:
+    if h > 0:
         out[:h] = np.median(a[:size], axis=0)
         out[m - h :] = np.median(a[m - size :], axis=0)
     return out
