@@ -203,9 +203,11 @@ class Diagnostics:
         library over the root mean square of each equation's target (NaN without the
         screen): how much of the target no combination of the terms explains.
     rival_margin : ndarray (n,)
-        The same over the candidates that are another model: they leave out a chosen
-        term, or change a chosen coefficient by more than half
-        (``Selection.rival_margin``).  Below ``MIN_BIC_MARGIN`` a warning says that the
+        The same over the candidates that are another model than the one reported:
+        they leave out one of its terms, or change one of its coefficients by more than
+        half (``Selection.rival_margin_to``; ``Selection.rival_margin`` judges them
+        against the selection's own choice, before the final selection dropped terms
+        from it).  Below ``MIN_BIC_MARGIN`` a warning says that the
         data do not strongly prefer the chosen model.  A close candidate that only adds
         a term to the chosen ones, which keep their values, is not warned about on its
         own: whether terms are missing is what ``below_floor``, ``bias_ratio`` and
@@ -714,9 +716,9 @@ RULES: tuple[Rule, ...] = (
         "close runner-up",
         lambda d: np.flatnonzero(d.rival_margin < MIN_BIC_MARGIN).tolist() or None,
         lambda d, close: (
-            f"equations {close}: another model (without some of the chosen terms, or "
+            f"equations {close}: another model (without some of the reported terms, or "
             "with one of their coefficients changed by more than half) scored within "
-            f"{MIN_BIC_MARGIN:g} of the chosen one's BIC (differences "
+            f"{MIN_BIC_MARGIN:g} of the best candidate's BIC (differences "
             + ", ".join(f"{v:.1f}" for v in d.rival_margin[close])
             + "): the data do not strongly prefer the selected terms; compare the "
             "candidates (selection_.candidates and selection_.scores on the path, "
@@ -914,7 +916,7 @@ def diagnose(
             else np.full(n, np.nan)
         ),
         rival_margin=(
-            selection.rival_margin.copy()
+            selection.rival_margin_to(standard)
             if selection is not None and selection.criterion == "bic"
             else np.full(n, np.nan)
         ),

@@ -550,6 +550,19 @@ def test_score_margin_is_the_gap_to_the_best_other_support():
     # a superset that changes a chosen coefficient by more than half is a rival
     cand[3, 1, 0] = 2.0
     assert np.allclose(score_margin(scores, cand, index, rivals=True), [0.5, np.inf])
+    # Judged against the model reported: in column 0 the final selection dropped term 1
+    # from the chosen {0,1}.  Candidate {0} is then that model, not a rival; {0,1} and
+    # "all" keep term 0 at its value, so only add terms: no rival is left.  The margin
+    # is still measured from the chosen (best) score.
+    cand[3, 1, 0] = 1.0
+    reference = np.array([[1.0, 1.0], [0.0, 0.0], [0.0, 0.0]])
+    got = score_margin(scores, cand, index, rivals=True, reference=reference)
+    assert np.all(np.isinf(got))
+    # A reported coefficient more than half away from every candidate's: each other
+    # support is a rival, the chosen candidate itself included (margin 0).
+    reference[0, 0] = 3.0
+    got = score_margin(scores, cand, index, rivals=True, reference=reference)
+    assert np.allclose(got, [0.0, np.inf])
 
 
 def test_a_close_runner_up_support_is_reported():

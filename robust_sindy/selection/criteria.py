@@ -152,6 +152,16 @@ class Selection:
     from_subsets: np.ndarray
     rival_margin: np.ndarray
 
+    def rival_margin_to(self, reference: np.ndarray) -> np.ndarray:
+        """:attr:`rival_margin` with the model finally reported, ``reference`` (p, n,
+        in the units of the candidates), in the chosen one's place
+        (:func:`score_margin`); ``inf`` for every column without ``criterion="bic"``."""
+        if self.criterion != "bic":
+            return np.full(self.coef.shape[1], np.inf)
+        pooled = np.concatenate([self.candidates, self.subsets])
+        scores = np.concatenate([self.scores, self.subset_scores])
+        return score_margin(scores, pooled, _pick(scores), rivals=True, reference=reference)
+
     def __repr__(self) -> str:
         return (
             f"Selection(criterion={self.criterion!r}, "
@@ -342,7 +352,7 @@ def _rival(candidate, chosen_coef) -> bool:
     return bool(np.any(change))
 
 
-def score_margin(scores, candidates, index, rivals: bool = False) -> np.ndarray:
+def score_margin(scores, candidates, index, rivals: bool = False, reference=None) -> np.ndarray:
     """Per column, the score of the best candidate whose support differs from the
     chosen one (``index``) minus the chosen score; ``inf`` when none differs.  With
     ``rivals``, only the candidates that are another model count: they leave out a
@@ -354,12 +364,18 @@ def score_margin(scores, candidates, index, rivals: bool = False) -> np.ndarray:
     log-likelihood against a penalty of log m, so such candidates score close on most
     right answers from noisy states.
 
+    ``reference`` (p, n), the model finally reported where later stages changed the
+    chosen one (a term dropped as insignificant or as bias), takes the chosen
+    candidate's place in deciding which candidates differ from it and are another
+    model; the margin is still measured from the chosen (best) score.  The candidate
+    without the dropped term is then the reported model, not a rival of it.
+
     ``scores`` (L, n), ``candidates`` (L, p, n), ``index`` (n,).
     """
     L, _, n = candidates.shape
     out = np.full(n, np.inf)
     for k in range(n):
-        chosen_coef = candidates[index[k], :, k]
+        chosen_coef = candidates[index[k], :, k] if reference is None else reference[:, k]
         chosen = chosen_coef != 0
         other = [
             i for i in range(L)
