@@ -230,8 +230,11 @@ def test_coarse_sampling_truncation_terms_are_dropped_not_selected_silently():
     ratio = model.truncation_ratio_
     assert np.isfinite(ratio).any() and not np.isfinite(ratio[truth]).any()
     assert np.array_equal(model.diagnostics_.truncation_ratio, ratio, equal_nan=True)
-    if (np.nan_to_num(ratio) >= 1).any():
-        assert any("truncation error" in str(w.message) for w in caught)
+    # A dropped term above its bias is reported, as a note (not a warning: alone, such
+    # drops were spurious terms on right answers).
+    noted = any(kind == "truncation drops" for kind, _ in model.diagnostics_.notes())
+    assert noted == bool((np.nan_to_num(ratio) >= 1).any())
+    assert not any("truncation error" in str(w.message) for w in caught)
     # Densely sampled, the same system has no truncation error to speak of.
     t, x, truth = _coarse_lotka_volterra(0.065, m=2000)
     dense = HuberSINDy(library=PolynomialLibrary(degree=2)).fit(x, t)
