@@ -20,7 +20,13 @@ def fresh(monkeypatch, tmp_path):
     monkeypatch.setattr(compiled, "_READY", False)
     monkeypatch.setattr(compiled, "_SPAWNED", False)
     monkeypatch.setattr(compiled, "_MARKER", tmp_path / "kernels.ready")
-    monkeypatch.setattr(compiled.subprocess, "Popen", lambda args, **kw: started.append(args))
+    monkeypatch.setattr(compiled, "_CHILD", None)
+
+    class Child:  # records the command instead of starting it
+        def __init__(self, args, **kw):
+            started.append(args)
+
+    monkeypatch.setattr(compiled.subprocess, "Popen", Child)
     namespace = {}
 
     def twice(x):
@@ -38,6 +44,9 @@ def test_background_mode_starts_one_compilation_and_waits_for_its_marker(fresh, 
     assert kernels.run("twice", 1.5) is None  # not compiled yet: the caller's NumPy code
     assert kernels.run("twice", 1.5) is None
     assert len(started) == 1 and started[0][1:3] == ["-m", "robust_sindy.compile_kernels"]
+    # Its handle is held: collected while the compiler runs, it would warn
+    # (ResourceWarning) inside the caller's code.
+    assert compiled._CHILD is not None
     assert marker.with_suffix(".lock").exists()
     marker.write_text("ok")  # the compiling process is done
     assert kernels.run("twice", 1.5) == 3.0

@@ -44,6 +44,10 @@ STALE_SECONDS = 600.0
 
 _READY = False
 _SPAWNED = False
+#: The compiling process, held for the life of this one: a handle collected while the
+#: compiler still runs raises ``ResourceWarning: subprocess ... is still running`` in
+#: whatever code the collection happens to interrupt (a user's fit).
+_CHILD = None
 _MARKER: Path | None = None
 _STATE_LOCK = threading.Lock()
 
@@ -126,7 +130,7 @@ def ready() -> bool:
 def _spawn(path: Path) -> None:
     """Start ``python -m robust_sindy.compile_kernels`` once per process, unless another
     process is compiling already (a fresh lock file beside the marker)."""
-    global _SPAWNED
+    global _SPAWNED, _CHILD
     with _STATE_LOCK:
         if _SPAWNED:
             return
@@ -139,7 +143,7 @@ def _spawn(path: Path) -> None:
         except OSError:
             return
         env = {**os.environ, "ROBUST_SINDY_KERNELS": "wait"}
-        subprocess.Popen(
+        _CHILD = subprocess.Popen(
             [sys.executable, "-m", "robust_sindy.compile_kernels", str(path)],
             env=env,
             stdin=subprocess.DEVNULL,
