@@ -576,6 +576,8 @@ def test_a_close_runner_up_support_is_reported():
     assert np.all(d.bic_margin >= 6.0) and d.problems() == []
     assert np.allclose(d.bic_margin, model.selection_.margin)
     assert np.allclose(d.rival_margin, model.selection_.rival_margin)
+    sel = model.selection_  # against its own choice, the method gives the recorded margin
+    assert np.array_equal(sel.rival_margin_to(sel.coef), sel.rival_margin)
     assert np.all(d.rival_margin >= d.bic_margin)  # the best of fewer candidates
     (message,) = dataclasses.replace(d, rival_margin=np.array([40.0, 2.5, np.inf])).problems()
     assert message.startswith("equations [1]: another model") and "2.5" in message

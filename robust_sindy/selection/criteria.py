@@ -155,9 +155,7 @@ class Selection:
     def rival_margin_to(self, reference: np.ndarray) -> np.ndarray:
         """:attr:`rival_margin` with the model finally reported, ``reference`` (p, n,
         in the units of the candidates), in the chosen one's place
-        (:func:`score_margin`); ``inf`` for every column without ``criterion="bic"``."""
-        if self.criterion != "bic":
-            return np.full(self.coef.shape[1], np.inf)
+        (:func:`score_margin`; with ``reference = coef`` it is :attr:`rival_margin`)."""
         pooled = np.concatenate([self.candidates, self.subsets])
         scores = np.concatenate([self.scores, self.subset_scores])
         return score_margin(scores, pooled, _pick(scores), rivals=True, reference=reference)
