@@ -81,12 +81,20 @@ from .timeseries.temporal import (
     TemporalScreening,
     fill_missing,
     noise_flag_bound,
+    relative_noise,
     temporal_screen,
 )
 from .timeseries.trajectories import Trajectories, is_frame, is_series
 from .timeseries.weak import WeakRows, support_half_width, weak_rows
 
-__all__ = ["FORMULATIONS", "MIN_ROWS_PER_TERM", "OUTLIER_EVIDENCE", "HuberSINDy", "load_model"]
+__all__ = [
+    "FORMULATIONS",
+    "MIN_ROWS_PER_TERM",
+    "OUTLIER_EVIDENCE",
+    "WEAK_WITH_OUTLIERS_NOISE",
+    "HuberSINDy",
+    "load_model",
+]
 
 #: The choices of ``formulation``.
 FORMULATIONS = ("strong", "weak", "auto")
@@ -94,8 +102,18 @@ FORMULATIONS = ("strong", "weak", "auto")
 #: entries than Gaussian noise alone would at its cutoff, beyond this probability (a
 #: binomial bound on the count of all entries): outliers were found, which cost single
 #: samples in the strong form, where the weak form's integrals would rest on their
-#: repairs.
+#: repairs (unless the states are noisy: :data:`WEAK_WITH_OUTLIERS_NOISE`).
 OUTLIER_EVIDENCE = 1e-3
+#: With outliers found, ``formulation="auto"`` still takes the weak form where the
+#: states' noise (the temporal screen's level, median over the states, relative to the
+#: spread of the repaired states) is at least this: the strong form's derivatives of
+#: noisy states then cost more than the repairs cost the weak form's integrals.  It is
+#: the measured crossover (states only, degree-4 library, 16 polynomial flows with
+#: glitches, spikes, whole-row contamination and bursts): at 1 % noise both forms are
+#: right about as often, at 2 % and above the weak form is right more often and the
+#: strong form fails silently in some cases, at 0.1 % the strong form is right more
+#: often (the weak form loses whole-row contamination).
+WEAK_WITH_OUTLIERS_NOISE = 0.015
 #: The weak form needs more test functions than this many per library term (their
 #: centres are placed closer together on short records to reach twice as many).
 MIN_ROWS_PER_TERM = 2
@@ -217,8 +235,10 @@ class HuberSINDy(BaseEstimator):
         functions, no derivative estimated (``"weak"``,
         :mod:`robust_sindy.timeseries.weak`; ``t`` is then required); ``"auto"``: the
         weak form where no ``x_dot`` is given, unless the temporal screen flagged more
-        entries than Gaussian noise would (outliers: ``OUTLIER_EVIDENCE``) or the records
-        are too short for it (``diagnostics_.formulation_reason`` says which and why).
+        entries than Gaussian noise would (outliers: ``OUTLIER_EVIDENCE``) in states
+        whose noise is below ``WEAK_WITH_OUTLIERS_NOISE`` (1.5 %) of their spread, or
+        the records are too short for it (``diagnostics_.formulation_reason`` says which
+        and why).
     constraints : None, "energy_preserving", LinearConstraints or callable
         Linear constraints on the coefficients across equations
         (:mod:`robust_sindy.constraints`; a callable gets the library's feature names
@@ -508,7 +528,8 @@ class HuberSINDy(BaseEstimator):
     ) -> tuple[WeakRows | None, str]:
         """The weak form of the records, when ``formulation`` asks for it (``"auto"``:
         states only, and no more entries flagged by the temporal screen than Gaussian
-        noise gives, :func:`noise_flag_bound`), and why: the repaired
+        noise gives, :func:`noise_flag_bound`, or states whose noise is at least
+        :data:`WEAK_WITH_OUTLIERS_NOISE` of their spread), and why: the repaired
         states (the raw ones without the screen) integrated against test functions whose
         width the screen's noise levels set."""
         if self.formulation == "strong":
@@ -518,17 +539,30 @@ class HuberSINDy(BaseEstimator):
         # Without the screen, ``temporal`` only filled the missing readings: the choice
         # and the width are the screen's all the same.
         screen = temporal if self.screen else temporal_screen(data.x, data.t)
+        outliers = ""
         if self.formulation == "auto":
             # Missing readings are not outliers: the count is of the readings.
             readings = int((~missing.states).sum())
             flagged = int((screen.flags & ~missing.states).sum())
             bound = noise_flag_bound(readings, OUTLIER_EVIDENCE)
             if flagged > bound:
-                return None, (
-                    f"strong form: the temporal screen flagged {flagged} entries "
-                    f"({100 * flagged / readings:.2g} %), more than Gaussian noise "
-                    f"gives ({bound}): outliers cost single samples in the strong form, where "
-                    "the weak form's integrals would rest on their repairs (formulation='auto')"
+                noise = relative_noise(screen)
+                found = (
+                    f"the temporal screen flagged {flagged} entries "
+                    f"({100 * flagged / readings:.2g} %), more than Gaussian noise gives "
+                    f"({bound}), and the states' noise is {100 * noise:.2g} % "
+                    "of their spread"
+                )
+                if not noise >= WEAK_WITH_OUTLIERS_NOISE:
+                    return None, (
+                        f"strong form: {found}: outliers cost single samples in the strong "
+                        "form, where the weak form's integrals would rest on their repairs "
+                        "(formulation='auto')"
+                    )
+                outliers = (
+                    f"weak form: {found}, at least {100 * WEAK_WITH_OUTLIERS_NOISE:.2g} %: "
+                    "derivatives of states this noisy cost the strong form more than the "
+                    "repairs cost the integrals"
                 )
         support = support_half_width(data, screen)
         states = temporal.repaired if self.screen else z[:, : data.n_states]
@@ -551,13 +585,15 @@ class HuberSINDy(BaseEstimator):
                 f"strong form: the weak form would have {rows.n_rows} test functions for "
                 f"{terms} terms (formulation='auto')"
             )
-        why = (
-            "weak form (formulation='weak')"
-            if self.formulation == "weak"
-            else "weak form: states only, no outliers found by the temporal screen; test "
-            f"functions of half width {support.samples:.0f} samples, from the states' noise "
-            "(formulation='auto')"
-        )
+        if self.formulation == "weak":
+            why = "weak form (formulation='weak')"
+        else:
+            why = (
+                outliers or "weak form: states only, no outliers found by the temporal screen"
+            ) + (
+                f"; test functions of half width {support.samples:.0f} samples, from the "
+                "states' noise (formulation='auto')"
+            )
         return rows, why
 
     def _set_fitted(self, found: Identification) -> None:

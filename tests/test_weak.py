@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
-from robust_sindy.estimator import OUTLIER_EVIDENCE
-from robust_sindy.timeseries.temporal import noise_flag_bound, temporal_screen
+from robust_sindy.estimator import OUTLIER_EVIDENCE, WEAK_WITH_OUTLIERS_NOISE
+from robust_sindy.timeseries.temporal import noise_flag_bound, relative_noise, temporal_screen
 from robust_sindy.timeseries.trajectories import Trajectories
 from robust_sindy.timeseries.weak import (
     MIN_SUPPORT_SAMPLES,
@@ -146,26 +146,53 @@ def test_auto_keeps_measured_derivatives_and_says_which_form_it_used():
 
 def test_auto_keeps_the_strong_form_where_the_temporal_screen_found_outliers():
     # Gaussian noise alone: the screen flags about as many entries as its cutoff lets
-    # through, and the weak form is used.  The same states with 1 % of the entries
-    # spiked: outliers found, and the strong form keeps them to single samples.
+    # through, and the weak form is used.  The same states at a tenth of the noise with
+    # 1 % of the entries spiked: outliers found, and the strong form keeps them to
+    # single samples.  Spiked at twice the noise: the states are noisy enough that
+    # their derivatives would cost the strong form more, and the weak form is used.
     data = _lorenz(t_end=10.0)
     rng = np.random.default_rng(4)
     rms = np.sqrt(np.mean(data.x**2, axis=0))
-    noisy = data.x + 0.02 * rms * rng.normal(size=data.x.shape)
-    spiked = noisy.copy()
+    unit = rms * rng.normal(size=data.x.shape)
     hit = rng.random(data.x.shape) < 0.01
-    spiked[hit] += 3.0 * data.x.std(axis=0)[np.nonzero(hit)[1]]
+    spikes = np.where(hit, 3.0 * data.x.std(axis=0), 0.0)
+    noisy = data.x + 0.02 * unit
+    fits = {}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", rs.IdentificationWarning)
-        gaussian = rs.HuberSINDy().fit(noisy, data.t)
-        outliers = rs.HuberSINDy().fit(spiked, data.t)
+        for name, x in [("gaussian", noisy), ("quiet", data.x + 0.002 * unit + spikes),
+                        ("loud", data.x + 0.04 * unit + spikes)]:  # fmt: skip
+            fits[name] = rs.HuberSINDy().fit(x, data.t)
     bound = noise_flag_bound(noisy.size, OUTLIER_EVIDENCE)
+    gaussian, quiet, loud = fits["gaussian"], fits["quiet"], fits["loud"]
     assert gaussian.temporal_.flags.sum() <= bound
     assert gaussian.diagnostics_.formulation == "weak"
     assert "no outliers found" in gaussian.diagnostics_.formulation_reason
-    assert outliers.temporal_.flags.sum() > bound
-    assert outliers.diagnostics_.formulation == "strong" and outliers.weak_ is None
-    assert "more than Gaussian noise" in outliers.diagnostics_.formulation_reason
+    assert relative_noise(quiet.temporal_) < WEAK_WITH_OUTLIERS_NOISE / 3
+    assert quiet.temporal_.flags.sum() > bound
+    assert quiet.diagnostics_.formulation == "strong" and quiet.weak_ is None
+    assert "more than Gaussian noise" in quiet.diagnostics_.formulation_reason
+    assert relative_noise(loud.temporal_) > 2 * WEAK_WITH_OUTLIERS_NOISE
+    assert loud.temporal_.flags.sum() > bound
+    assert loud.diagnostics_.formulation == "weak" and loud.weak_ is not None
+    assert "more than Gaussian noise" in loud.diagnostics_.formulation_reason
+    assert "noise is" in loud.diagnostics_.formulation_reason
+
+
+def test_relative_noise_is_the_screen_s_level_over_the_repaired_spread():
+    # Unit-free (each state's scale and offset), and glitches do not inflate the spread.
+    t = np.linspace(0.0, 30.0, 3000)
+    clean = np.column_stack([np.sin(t), 2.0 * np.cos(0.7 * t), np.sin(1.3 * t + 1.0)])
+    rng = np.random.default_rng(8)
+    x = clean + 0.03 * clean.std(axis=0) * rng.normal(size=clean.shape)
+    glitched = x.copy()
+    i, j = rng.choice(x.shape[0], 90, replace=False), rng.integers(0, 3, 90)
+    glitched[i, j] += 20.0 * clean.std(axis=0)[j]
+    level = relative_noise(temporal_screen(x, t))
+    assert 0.025 < level < 0.035
+    assert relative_noise(temporal_screen(glitched, t)) == pytest.approx(level, rel=0.1)
+    scaled = relative_noise(temporal_screen(1e4 * x + np.array([5e5, -3e4, 1e3]), 1e-3 * t))
+    assert scaled == pytest.approx(level, rel=1e-6)
 
 
 def test_the_noise_flag_bound_holds_on_gaussian_noise():

@@ -36,6 +36,7 @@ __all__ = [
     "TemporalScreening",
     "fill_missing",
     "noise_flag_bound",
+    "relative_noise",
     "temporal_screen",
 ]
 
@@ -626,3 +627,14 @@ def noise_flag_bound(entries: int, evidence: float = 1e-3, cutoff: float = CUTOF
 
     rate = 2.0 * scipy.stats.norm.sf(cutoff)
     return int(scipy.stats.binom.isf(evidence, int(entries), rate))
+
+
+def relative_noise(screening: TemporalScreening) -> float:
+    """The states' noise relative to their size: per state, the screen's noise level
+    over the standard deviation of the repaired states (flagged entries do not inflate
+    it), the median over the states with a spread; NaN if none has one.  Unit-free."""
+    spread = np.std(screening.repaired, axis=0)
+    ok = (spread > 0) & np.isfinite(screening.scale)
+    if not ok.any():
+        return float("nan")
+    return float(np.median(screening.scale[ok] / spread[ok]))
