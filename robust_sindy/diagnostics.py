@@ -275,6 +275,9 @@ class Diagnostics:
     temporal_flagged_left_out : int
         Entries flagged by the temporal screen in the samples the row screen left out
         (the strong form; all flagged entries with the weak form).
+    record_samples : int
+        The samples of the records (the weak form's ``n_samples`` counts its test
+        functions; 0: ``n_samples``).
     """
 
     n_samples: int
@@ -324,6 +327,7 @@ class Diagnostics:
     energy_residual: float = float("nan")
     trapping_eigenvalue: float = float("nan")
     repaired_rows: int = 0
+    record_samples: int = 0
 
     @property
     def weak(self) -> np.ndarray:
@@ -487,7 +491,9 @@ def _outliers(d) -> float:
     n = max(d.n_samples, 1)
     # Flagged entries whose samples the row screen readmitted were not outliers (a fast
     # excursion the local fits cannot follow): only those left out count.
-    entries = d.temporal_flagged_left_out / (n * max(d.derivative_half_window.size, 1))
+    # The entries are the records' (the weak form's n_samples counts its test functions).
+    readings = max(d.record_samples or n, 1) * max(d.derivative_half_window.size, 1)
+    entries = d.temporal_flagged_left_out / readings
     out = d.flagged_fraction - d.unresolved_samples / n
     if d.formulation == "weak":  # the counts are of test functions, not of samples
         return max(entries, out)
@@ -945,5 +951,6 @@ def diagnose(
             if weak is not None
             else entry_flags[~keep & ~deriv.unresolved & ~absent].sum()
         ),
+        record_samples=int(entry_flags.shape[0]),
         **({} if missing is None else missing.summary()),
     )

@@ -230,3 +230,30 @@ def test_ensembles_of_weak_fits_resample_blocks_of_the_records():
         ).fit(x, data.t)
     assert ens.n_failed_ == 0 and ens.certified_fraction_ == 1.0
     np.testing.assert_array_equal(ens.coef_.T != 0, TRUE != 0)
+
+
+def test_many_outliers_counts_the_records_entries_in_the_weak_form():
+    # The weak form's n_samples counts its test functions; the share of flagged entries
+    # is of the records' entries (4 % glitched here), not of entries per test function.
+    import dataclasses
+
+    from robust_sindy.diagnostics import kind_of
+
+    data = _lorenz(t_end=10.0)
+    rng = np.random.default_rng(5)
+    spread = data.x.std(axis=0)
+    x = data.x + 0.03 * spread * rng.normal(size=data.x.shape)
+    hit = rng.random(x.shape) < 0.04
+    x[hit] += rng.choice([-10.0, 10.0], hit.sum()) * spread[np.nonzero(hit)[1]]
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        d = rs.HuberSINDy().fit(x, data.t).diagnostics_
+    assert d.formulation == "weak" and d.n_samples < d.record_samples == x.shape[0]
+    assert 0.02 < d.temporal_flagged_entries / x.size < 0.06
+    assert "many outliers" not in {kind_of(w) for w in caught}
+    (message,) = [
+        p
+        for p in dataclasses.replace(d, temporal_flagged_left_out=round(0.35 * x.size)).problems()
+        if "flagged as outliers" in p
+    ]
+    assert message.startswith("35 % of the data were flagged as outliers")
