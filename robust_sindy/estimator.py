@@ -553,14 +553,15 @@ class HuberSINDy(BaseEstimator):
                     f"({bound}), and the states' noise is {100 * noise:.2g} % "
                     "of their spread"
                 )
+                bar = f"{100 * WEAK_WITH_OUTLIERS_NOISE:.2g} %"
                 if not noise >= WEAK_WITH_OUTLIERS_NOISE:
                     return None, (
-                        f"strong form: {found}: outliers cost single samples in the strong "
-                        "form, where the weak form's integrals would rest on their repairs "
-                        "(formulation='auto')"
+                        f"strong form: {found}, below {bar}: outliers cost single samples in "
+                        "the strong form, where the weak form's integrals would rest on their "
+                        "repairs (formulation='auto')"
                     )
                 outliers = (
-                    f"weak form: {found}, at least {100 * WEAK_WITH_OUTLIERS_NOISE:.2g} %: "
+                    f"weak form: {found}, at least {bar}: "
                     "derivatives of states this noisy cost the strong form more than the "
                     "repairs cost the integrals"
                 )
