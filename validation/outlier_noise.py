@@ -17,10 +17,11 @@ with outliers (``robust_sindy.estimator.WEAK_WITH_OUTLIERS_NOISE``)::
     python validation/outlier_noise.py --draw 11 --seed 2 --levels 0.02 \\
         --families rows,glitches,spikes,heavy
     python validation/outlier_noise.py --draw 13 --seed 4 --levels 0.005,0.015,0.05 \\
-        --families glitches,spikes --forms auto          # held out, the rule itself
+        --families glitches,spikes --forms auto,strong \\
+        --out validation/results/outlier_noise       # held out: the rule against before
 
 (``heavy`` ignores ``level``: Student-t noise of the zoo's scale.)  Needs the extras
-``zoo`` (dysts).  About 4 seconds per fit on 2 cores.
+``zoo`` (dysts).  About 4 seconds per fit on one core.
 """
 
 from __future__ import annotations
