@@ -5,6 +5,7 @@ import warnings
 
 import numpy as np
 import pytest
+import scipy.linalg
 
 import robust_sindy as rs
 from robust_sindy.core.losses import huber_psi
@@ -533,3 +534,31 @@ def test_the_scaled_library_holds_no_reference_cycle():
         assert alive() is None  # freed by reference counting alone
     finally:
         gc.enable()
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_cholesky_is_taken_where_the_eigenvalues_show_nothing_would_be_cut(seed):
+    # A dense matrix whose smallest eigenvalue is 6 times above the cut, where the
+    # 1-norm condition estimate cannot tell (it is below its margin): its Cholesky
+    # factor, and the solution of the uncut eigen-decomposition (to the rounding that
+    # a condition number of 2e10 leaves).  Ten times below the cut: no factor, and the
+    # eigen-solver cuts.
+    rng = np.random.default_rng(seed)
+    p = 200
+    q, _ = np.linalg.qr(rng.normal(size=(p, p)))
+    b = rng.normal(size=p)
+    for smallest, factored in [(6 * nw.EIG_CUT, True), (nw.EIG_CUT / 10, False)]:
+        vals = np.geomspace(1.0, smallest, p)
+        m = (q * vals) @ q.T
+        m = (m + m.T) / 2
+        c, _ = scipy.linalg.lapack.dpotrf(m, lower=True, clean=False)
+        rcond, _ = scipy.linalg.lapack.dpocon(c, np.abs(m).sum(axis=0).max(), uplo="L")
+        assert rcond < nw.CHOLESKY_MARGIN * nw.EIG_CUT  # the estimate cannot tell
+        assert (nw.conditioned_cholesky(m, nw.EIG_CUT) is not None) == factored
+        valid = np.ones((1, p), dtype=bool)
+        x, deficient = nw._solve_blocks(m[None].copy(), b[None], valid)
+        assert bool(deficient[0]) != factored
+        if factored:
+            w, v = np.linalg.eigh(m)
+            exact = v @ ((v.T @ b) / w)
+            assert np.linalg.norm(x[0] - exact) <= 1e-5 * np.linalg.norm(exact)

@@ -7,7 +7,9 @@ import pytest
 
 from robust_sindy.core import compiled as _compiled
 from robust_sindy.core import threads as _threads
+from robust_sindy.core.blas import one_thread
 from robust_sindy.selection import path
+from robust_sindy.solvers import driver as _driver
 from robust_sindy.timeseries.temporal import temporal_screen
 
 from .conftest import random_problem
@@ -58,3 +60,43 @@ def test_path_and_temporal_screen_are_the_same_on_one_thread_and_on_several(monk
     assert np.array_equal(several[0].converged, one[0].converged)
     assert np.array_equal(several[1].flags, one[1].flags)
     assert np.array_equal(several[1].repaired, one[1].repaired)
+
+
+def test_small_items_run_in_the_calling_thread(monkeypatch):
+    monkeypatch.setattr(_threads, "threads", lambda: 2)
+    ran_in = []
+    work = _threads.THREAD_WORK
+    _threads.map_threads(lambda i: ran_in.append(threading.current_thread()), range(3), work / 2)
+    assert ran_in == [threading.current_thread()] * 3
+    _threads.map_threads(lambda i: ran_in.append(threading.current_thread()), range(3), work)
+    assert all(name.startswith("robust_sindy") for name in (t.name for t in ran_in[3:]))
+
+
+def test_newton_and_the_row_screen_are_the_same_on_one_thread_and_on_several(monkeypatch):
+    # Every per-column piece (inlier Gram matrices, their updates, Cholesky solves,
+    # leverages) handed to threads, however small: the same numbers as in one thread
+    # (BLAS on one thread in both, as in the threads: BLAS itself may round differently
+    # on several).
+    from robust_sindy import fit
+    from robust_sindy.selection.rows import screen_rows
+
+    theta, y = random_problem(7, m=600, p=60, n=4, outliers=0.1)
+    start = np.ones(600, dtype=bool)
+    start[::37] = False
+    monkeypatch.setattr(_threads, "THREAD_WORK", 0.0)
+    monkeypatch.setattr(_driver, "USE_KERNEL", False)  # the NumPy Newton iteration
+    handed = []
+    run = _threads._run
+    monkeypatch.setattr(_threads, "_run", lambda f, i: (handed.append(f.__name__), run(f, i))[1])
+    runs = []
+    for k in (3, 1):
+        monkeypatch.setattr(_threads, "threads", lambda k=k: k)
+        with one_thread():
+            runs.append((fit(theta, y, delta=0.3, lam=0.0), screen_rows(theta, y, start=start)))
+    (f3, s3), (f1, s1) = runs
+    assert np.array_equal(f3.coef, f1.coef)
+    assert np.array_equal(s3.outliers, s1.outliers)
+    assert np.array_equal(s3.scale, s1.scale)
+    assert s3.outliers.sum() > 0
+    # The pieces did run in threads (each module's per-column function is `column`).
+    assert handed.count("column") > 100

@@ -1,9 +1,11 @@
 """Independent compiled work on the machine's cores.
 
-The compiled kernels release the GIL, so independent pieces of work (the path walk of
-one target column, the local fits of one state) run side by side in threads.  Each
-piece is computed exactly as it would be alone, so the results do not depend on the
-number of threads.
+The compiled kernels and BLAS release the GIL, so independent pieces of work (the path
+walk of one target column, the local fits of one state, one equation's inlier Gram
+matrix, Cholesky solve or leverages) run side by side in threads.  Each piece is
+computed exactly as it would be alone with BLAS on one thread, so the results do not
+depend on the number of threads (BLAS itself on several threads may round some products
+differently in the last place).
 
 The threads are those of the cores this process may use, at most ``OMP_NUM_THREADS``
 when it is set (joblib's worker processes set it, so that parallel fits do not
@@ -19,10 +21,15 @@ from concurrent.futures import ThreadPoolExecutor
 
 from .blas import one_thread
 
-__all__ = ["MAX_THREADS", "map_threads", "threads"]
+__all__ = ["MAX_THREADS", "THREAD_WORK", "map_threads", "threads"]
 
 #: Upper bound on the threads (``None``: the cores, see the module's docstring).
 MAX_THREADS: int | None = None
+
+#: Floating-point operations per item below which :func:`map_threads` given ``flops``
+#: runs in the calling thread: handing an item to a thread costs tens of microseconds,
+#: the time of about this much arithmetic.
+THREAD_WORK = 2e6
 
 _POOL: ThreadPoolExecutor | None = None
 _POOL_SIZE = 0
@@ -63,13 +70,14 @@ def _run(func, item):
         _INSIDE.active = False
 
 
-def map_threads(func, items) -> list:
+def map_threads(func, items, flops: float | None = None) -> list:
     """``[func(item) for item in items]``, the items spread over :func:`threads` threads
-    (in the calling thread when there is one thread, one item, or when called from one
-    of these threads), BLAS on one thread meanwhile."""
+    (in the calling thread when there is one thread, one item, when called from one of
+    these threads, or when ``flops``, the arithmetic of one item, is below
+    :data:`THREAD_WORK`), BLAS on one thread meanwhile."""
     items = list(items)
     k = min(threads(), len(items))
-    if k <= 1 or getattr(_INSIDE, "active", False):
+    if k <= 1 or getattr(_INSIDE, "active", False) or (flops is not None and flops < THREAD_WORK):
         return [func(item) for item in items]
     pool = _pool(k)
     with one_thread():

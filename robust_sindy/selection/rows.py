@@ -19,6 +19,7 @@ import scipy.stats
 
 from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
+from ..core.threads import map_threads
 from ..core.validation import as_float_array, check_int, check_positive, check_problem
 from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fit
 from ..solvers.newton import conditioned_cholesky, inlier_gram
@@ -150,7 +151,8 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
         unit = theta / np.where(norms > 0, norms, 1.0)
         own = np.asarray(row_noise.multiply(row_noise).sum(axis=1)).ravel()  # diag(D D^T)
         typical = float(np.median(own[rows])) if rows.size else 1.0
-    for k in range(r.shape[1]):
+
+    def column(k):  # writes only column k of `out`: the columns run side by side
         inl = np.abs(r[rows, k]) <= delta[k]
         g = inlier_gram(a, gram, inl[:, None].astype(float))[0]
         at = rows[inl]
@@ -158,7 +160,7 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
             lev = _leverages(a[inl], g)
             rest = np.maximum(1.0 - lev, np.finfo(float).eps)
             out[at, k] = r[at, k] / np.where(suspect[at], rest, np.sqrt(rest))
-            continue
+            return
         # The noise a fit on the inliers leaves in each residual: in the kept inliers'
         # (I - H) C (I - H), in the other rows' (not fitted, or fitted only through
         # Huber's clipped score) that of a prediction.
@@ -174,6 +176,8 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
         out[at[held], k] = np.where(
             np.abs(deleted) > np.abs(out[at[held], k]), deleted, out[at[held], k]
         )
+
+    map_threads(column, range(r.shape[1]), flops=rows.size * theta.shape[1] ** 2)
     return out
 
 

@@ -69,6 +69,7 @@ import scipy.linalg
 
 from ..core.certificates import column_norms, kkt_from_gradient, rounding_free
 from ..core.losses import huber_psi, soft_threshold
+from ..core.threads import map_threads
 from .problem import (
     ARMIJO,
     DIRECT_GRAM,
@@ -227,9 +228,12 @@ def inlier_gram(A, G: np.ndarray, w: np.ndarray, idx=None, sizes=None) -> np.nda
         idx, sizes = _every_term(k_all, A.shape[1])
     s = idx.shape[1]
     M = np.zeros((k_all, s, s))
-    for k in range(k_all):  # one BLAS product per target column
+
+    def column(k):  # one BLAS product per target column, side by side
         J = idx[k, : sizes[k]]
         M[k, : J.size, : J.size] = _weighted_gram(A, G, w[:, k], J, J.size)
+
+    map_threads(column, range(k_all), flops=A.shape[0] * s * s / 2)
     return M
 
 
@@ -283,34 +287,39 @@ class GramCache:
             idx, sizes = _every_term(k_all, p)
         s = idx.shape[1]
         M = np.zeros((k_all, s, s))
-        fresh = []
-        where = np.full(p, -1)
-        for c, key in enumerate(ids):
+
+        def column(c):  # True where updated: each column its own entry, side by side
+            key = ids[c]
             entry = self.entries.get(key)
+            if entry is None:
+                return False
             J = idx[c, : sizes[c]]
-            if entry is not None:
-                old, J0, M0, drift = entry
-                changed = np.flatnonzero(inlier[:, c] != old)
+            old, J0, M0, drift = entry
+            changed = np.flatnonzero(inlier[:, c] != old)
+            where = np.full(p, -1)
+            where[J0] = np.arange(J0.size)
+            new = J[where[J] < 0]
+            # A working set much smaller than the stored one is formed afresh.
+            if changed.size > UPDATE_ROWS * m or J0.size + new.size > 2 * J.size:
+                return False
+            if new.size:
+                J0, M0, drift = _border(A, G, old, J0, M0, drift, new)
+                where = np.full(p, -1)
                 where[J0] = np.arange(J0.size)
-                new = J[where[J] < 0]
-                where[J0] = -1
-                # A working set much smaller than the stored one is formed afresh.
-                if changed.size <= UPDATE_ROWS * m and J0.size + new.size <= 2 * J.size:
-                    if new.size:
-                        J0, M0, drift = _border(A, G, old, J0, M0, drift, new)
-                    where[J0] = np.arange(J0.size)
-                    at = where[J]
-                    where[J0] = -1
-                    rows = _block(A, changed, J0)
-                    sign = np.where(inlier[changed, c], 1.0, -1.0)
-                    M1 = M0 + (rows * sign[:, None]).T @ rows
-                    d1 = drift + np.einsum("ij,ij->j", rows, rows)
-                    if np.all(d1 <= DRIFT * np.diag(M1)):
-                        M[c, : J.size, : J.size] = M1[np.ix_(at, at)]
-                        self.entries[key] = (inlier[:, c].copy(), J0, M1, d1)
-                        self.updates += 1
-                        continue
-            fresh.append(c)
+            at = where[J]
+            rows = _block(A, changed, J0)
+            sign = np.where(inlier[changed, c], 1.0, -1.0)
+            M1 = M0 + (rows * sign[:, None]).T @ rows
+            d1 = drift + np.einsum("ij,ij->j", rows, rows)
+            if not np.all(d1 <= DRIFT * np.diag(M1)):
+                return False
+            M[c, : J.size, : J.size] = M1[np.ix_(at, at)]
+            self.entries[key] = (inlier[:, c].copy(), J0, M1, d1)
+            return True
+
+        updated = map_threads(column, range(k_all), flops=UPDATE_ROWS * m * s * s)
+        fresh = [c for c, done in enumerate(updated) if not done]
+        self.updates += k_all - len(fresh)
         if fresh:
             M[fresh] = inlier_gram(A, G, inlier[:, fresh].astype(float), idx[fresh], sizes[fresh])
             for c in fresh:
@@ -347,18 +356,29 @@ CHOLESKY_MARGIN = 10.0
 
 def conditioned_cholesky(M: np.ndarray, cut: float):
     """The lower Cholesky factor of the symmetric ``M`` (its upper triangle not
-    cleaned) where no eigenvalue can be near the relative eigenvalue ``cut``: LAPACK's
-    estimate of the reciprocal 1-norm condition number at least
+    cleaned) where no eigenvalue can be near the relative eigenvalue ``cut``, so that an
+    eigen-solver or pseudo-inverse with that cut would cut nothing and give the same
+    result; else ``None``.
+
+    First by LAPACK's estimate of the reciprocal 1-norm condition number: at least
     :data:`CHOLESKY_MARGIN` times ``cut`` (for a symmetric matrix the 2-norm condition
-    number is at most the 1-norm's, so an eigen-solver or pseudo-inverse with that cut
-    would cut nothing and give the same result); else ``None``."""
+    number is at most the 1-norm's).  Where the estimate cannot tell (it exceeds the
+    2-norm condition number by up to the order of the matrix), by the eigenvalues
+    themselves: the smallest above ``cut`` times the largest by more than ten times
+    their rounding (``n eps`` of the largest), at a fraction of the cost of the
+    eigen-decomposition they spare."""
     c, info = scipy.linalg.lapack.dpotrf(M, lower=True, clean=False)
     if info != 0:
         return None
     rcond, info = scipy.linalg.lapack.dpocon(c, np.abs(M).sum(axis=0).max(), uplo="L")
-    if info != 0 or not rcond >= CHOLESKY_MARGIN * cut:
+    if info != 0 or not np.isfinite(rcond):
         return None
-    return c
+    if rcond >= CHOLESKY_MARGIN * cut:
+        return c
+    vals = np.linalg.eigvalsh(M)
+    if vals[0] > (cut + 10.0 * M.shape[0] * np.finfo(float).eps) * vals[-1]:
+        return c
+    return None
 
 
 def _cholesky_solve(Mk: np.ndarray, b: np.ndarray):
@@ -385,11 +405,14 @@ def _solve_blocks(Mm: np.ndarray, b: np.ndarray, valid: np.ndarray):
     deficient = np.zeros(k, dtype=bool)
     pending = np.ones(k, dtype=bool)
     if s >= CHOLESKY_SIZE:
-        for j in np.flatnonzero(sizes >= CHOLESKY_SIZE):
+
+        def column(j):  # each column its own factorisation, side by side
             n = sizes[j]
             x = _cholesky_solve(Mm[j, :n, :n] / top[j], b[j, :n] / top[j])
             if x is not None:
                 out[j, :n], pending[j] = x, False
+
+        map_threads(column, np.flatnonzero(sizes >= CHOLESKY_SIZE), flops=s**3 / 3)
     rest = np.flatnonzero(pending)
     if rest.size:
         # Padded with a multiple of the identity (the largest diagonal entry, so the
