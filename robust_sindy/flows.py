@@ -139,15 +139,19 @@ def _l96(_t, v, forcing):
     return (np.roll(v, -1) - np.roll(v, 2)) * np.roll(v, 1) - v + forcing
 
 
-def lorenz96_records(n_states: int, n_samples: int, seed: int = 0, forcing: float = 8.0):
+def lorenz96_records(
+    n_states: int, n_samples: int, seed: int = 0, forcing: float = 8.0, times=None
+):
     """Times, states and exact derivatives of Lorenz-96 (``n_states``, the zoo's
-    sampling step 0.01 after a seed-dependent burn-in), and the system
-    (:func:`robust_sindy.flows.lorenz96`: its true coefficients on the degree-2
-    monomials).  The right-hand side is evaluated directly, not through the library."""
+    sampling step 0.01 after a seed-dependent burn-in, or at ``times``, from 0 and
+    increasing, when given), and the system (:func:`robust_sindy.flows.lorenz96`: its
+    true coefficients on the degree-2 monomials).  The right-hand side is evaluated
+    directly, not through the library."""
     system = lorenz96(n_states)
     dt = system.dt
     burn = 5.0 + dt * n_samples * (0.5 + (seed % 7) / 7.0)
-    t_eval = burn + dt * np.arange(n_samples)
+    steps = dt * np.arange(n_samples) if times is None else np.asarray(times, dtype=float)
+    t_eval = burn + steps
     ic = system.ic + 1e-3 * np.random.default_rng(seed).normal(size=n_states)
     x = _integrate(lambda _t, v: _l96(_t, v, forcing), ic, t_eval, system.name)
     x_dot = np.array([_l96(0.0, v, forcing) for v in x])

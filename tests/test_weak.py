@@ -6,7 +6,11 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
-from robust_sindy.estimator import OUTLIER_EVIDENCE, WEAK_WITH_OUTLIERS_NOISE
+from robust_sindy.estimator import (
+    MIN_INDEPENDENT_ROWS_PER_TERM,
+    OUTLIER_EVIDENCE,
+    WEAK_WITH_OUTLIERS_NOISE,
+)
 from robust_sindy.timeseries.temporal import noise_flag_bound, relative_noise, temporal_screen
 from robust_sindy.timeseries.trajectories import Trajectories
 from robust_sindy.timeseries.weak import (
@@ -177,6 +181,56 @@ def test_auto_keeps_the_strong_form_where_the_temporal_screen_found_outliers():
     assert loud.diagnostics_.formulation == "weak" and loud.weak_ is not None
     assert "more than Gaussian noise" in loud.diagnostics_.formulation_reason
     assert "noise is" in loud.diagnostics_.formulation_reason
+
+
+def test_effective_rows_count_the_supports_not_the_centres():
+    # Centres four times closer give four times the rows but about the same number of
+    # independent ones; twice the record, twice as many; time units change nothing.
+    data = _lorenz(t_end=20.0)
+    theta = rs.PolynomialLibrary(degree=2).fit_transform(data.x)
+
+    def rows(t_end, min_rows, scale=1.0):
+        n = round(t_end / 0.01) + 1
+        traj = Trajectories.from_user(data.x[:n], scale * data.t[:n])
+        return weak_rows(traj, data.x[:n], theta[:n], scale * 0.15, min_rows=min_rows)
+
+    loose, close = rows(10.0, 0), rows(10.0, 10**6)
+    assert close.n_rows > 3.5 * loose.n_rows
+    assert close.effective_rows() == pytest.approx(loose.effective_rows(), rel=0.25)
+    assert loose.effective_rows() < loose.n_rows / 2
+    assert rows(20.0, 0).effective_rows() == pytest.approx(2 * loose.effective_rows(), rel=0.1)
+    assert rows(10.0, 0, 1e3).effective_rows() == pytest.approx(loose.effective_rows(), rel=1e-9)
+
+
+def test_auto_takes_the_strong_form_with_fewer_independent_rows_than_terms():
+    # Lorenz-96 with 10 states (66 terms) at 1 % noise: on a short record the weak
+    # form's overlapping test functions leave fewer independent rows than terms, and
+    # the strong form is used; on a record four times as long, the weak form.
+    from robust_sindy.flows import lorenz96_records
+
+    t, x, _, _ = lorenz96_records(10, 2000, seed=3)
+    rng = np.random.default_rng(5)
+    x = x + 0.01 * np.sqrt(np.mean(x**2, axis=0)) * rng.normal(size=x.shape)
+    library = rs.PolynomialLibrary(degree=2)
+    fits, independent = {}, {}
+    for n in (450, 2000):
+        screen = temporal_screen(x[:n], t[:n])
+        traj = Trajectories.from_user(x[:n], t[:n])
+        h = support_half_width(traj, screen).half_width
+        theta = library.fit_transform(screen.repaired)
+        independent[n] = (
+            weak_rows(traj, screen.repaired, theta, h, min_rows=4 * theta.shape[1]).effective_rows()
+            / theta.shape[1]
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", rs.IdentificationWarning)
+            fits[n] = rs.HuberSINDy(library=library).fit(x[:n], t[:n])
+    assert independent[450] < 0.8 * MIN_INDEPENDENT_ROWS_PER_TERM
+    assert fits[450].diagnostics_.formulation == "strong" and fits[450].weak_ is None
+    assert "independent rows for 66 terms" in fits[450].diagnostics_.formulation_reason
+    assert independent[2000] > 1.5 * MIN_INDEPENDENT_ROWS_PER_TERM
+    assert fits[2000].diagnostics_.formulation == "weak"
+    assert "independent rows for 66 terms" in fits[2000].diagnostics_.formulation_reason
 
 
 def test_relative_noise_is_the_screen_s_level_over_the_repaired_spread():

@@ -278,6 +278,18 @@ class WeakRows:
             [scipy.sparse.csr_array(d) for d in self.slopes], format="csr"
         )
 
+    def effective_rows(self) -> float:
+        """How many independent rows the test functions' overlap leaves: the
+        participation ratio ``tr(C)^2 / tr(C^2)`` of ``C = D D^T``, the covariance of the
+        targets' noise for white noise of the samples (``D``, :meth:`target_noise`).
+        ``K`` for disjoint supports of equal weight; for the test functions of
+        :func:`weight_functions`, about three per support width (``2 h``) of record,
+        however closely their centres are placed.  Unchanged by the units of time."""
+        d = self.target_noise()
+        c = d @ d.T
+        total = float(c.diagonal().sum())
+        return total**2 / float(c.multiply(c).sum()) if total > 0 else 0.0
+
     def covered(self, keep: np.ndarray) -> np.ndarray:
         """Samples under at least one of the rows ``keep`` (bool, K)."""
         out = []
