@@ -99,7 +99,9 @@ def main(argv=None) -> None:
     cases = args.cases + (HELDOUT if args.heldout else [])
     if not cases:
         parser.error("give cases, or --heldout")
-    os.environ.setdefault("OMP_NUM_THREADS", "1")  # one case per core
+    # One thread per case for the library's own threads (core.threads reads this at
+    # each call); BLAS, loaded with NumPy above, keeps its own thread count.
+    os.environ.setdefault("OMP_NUM_THREADS", "1")
     lines = [
         "| case | independent rows per term | `auto` | the other form |",
         "|---|---|---|---|",
