@@ -18,12 +18,17 @@ beside PySINDy's STLSQ (its default threshold, the samples with a missing entry 
 out, the sample times as an array).
 
     python validation/sensors.py [--seeds 3] [--out validation/results/sensors]
+
+``--systems Lorenz96_14,Lorenz96_30 --first-seed 5 --derivatives states`` runs other
+channel counts (``Lorenz96_N`` for any N of at least 4), seeds and derivatives.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import math
+import sys
 import time
 import warnings
 from itertools import combinations_with_replacement
@@ -40,8 +45,6 @@ SYSTEMS = ("DuffingForced", "Hopf", "Lorenz96_20")
 #: The zoo's sensor families, and glitches at uniformly random times (a logger's own
 #: time stamps and a channel's glitches together).
 FAMILIES = (*zoo.SENSOR_FAMILIES, "glitches+irregular")
-#: Every system with exact derivatives and from the states alone.
-DERIVATIVES = {name: ("exact", "states") for name in SYSTEMS}
 
 
 def _powers(k: int, degree: int) -> list:
@@ -87,7 +90,10 @@ def _system(name: str) -> System:
         coef[at[(0,)], 1], coef[at[(1,)], 1] = 1.0, mu
         coef[at[(0, 0, 1)], 1], coef[at[(1, 1, 1)], 1] = -1.0, -1.0
         return System(name, 2, 3, coef, [0.05, 0.0], 0.02, burn=0.0)
-    zs = lorenz96(int(name.split("_")[1]))
+    prefix, _, size = name.partition("_")
+    if prefix != "Lorenz96" or not size.isdigit():
+        raise ValueError(f"unknown system {name!r}: DuffingForced, Hopf or Lorenz96_N")
+    zs = lorenz96(int(size))
     return System(name, zs.n_states, 2, zs.coef, zs.ic, zs.dt)
 
 
@@ -131,7 +137,10 @@ def _family_index(family: str) -> int:
     return len(zoo.ALL_FAMILIES) + FAMILIES.index(family)
 
 
-def run_case(name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000):
+def run_case(
+    name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000,
+    noise: float = zoo.BASE_NOISE,
+):  # fmt: skip
     s = _system(name)
     rng = np.random.default_rng(
         [seed, _family_index(family), zoo.DERIVATIVES.index(derivatives), len(name)]
@@ -140,7 +149,8 @@ def run_case(name: str, family: str, derivatives: str, seed: int, n_samples: int
     times = zoo.sample_times(timing or family, n_samples, s.dt, rng)
     t = s.dt * np.arange(n_samples) if times is None else times
     x, u, dx = _simulate(s, t, seed)
-    noisy, _ = zoo.contaminate_family(x, outliers, rng)
+    params = dataclasses.replace(zoo.ZOO_CONTAMINATION, base_noise=noise)
+    noisy, _ = zoo.contaminate_family(x, outliers, rng, params)
     x_dot = dx if derivatives == "exact" else None
     rows = []
     for method in ("huber", "stlsq"):
@@ -175,13 +185,14 @@ def run_case(name: str, family: str, derivatives: str, seed: int, n_samples: int
 
 
 def table(rows: list[dict]) -> str:
+    systems = list(dict.fromkeys(r["system"] for r in rows))
     lines = [
         "| system | states | derivatives | "
         + " | ".join(FAMILIES)
         + " | failures warned | right but warned |",
         "|" + "---|" * (len(FAMILIES) + 5),
     ]
-    for name in SYSTEMS:
+    for name in systems:
         for der in zoo.DERIVATIVES:
             cells = []
             for fam in FAMILIES:
@@ -216,12 +227,24 @@ def table(rows: list[dict]) -> str:
 def main(argv=None):
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", type=int, default=3)
+    parser.add_argument("--first-seed", type=int, default=0)
+    parser.add_argument("--systems", default=",".join(SYSTEMS), help="comma-separated")
+    parser.add_argument("--derivatives", default="exact,states", help="comma-separated")
+    parser.add_argument("--samples", type=int, default=2000)
+    parser.add_argument(
+        "--noise", type=float, default=zoo.BASE_NOISE,
+        help="Gaussian noise on every reading, relative to each state's spread",
+    )  # fmt: skip
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="validation/results/sensors")
     args = parser.parse_args(argv)
+    systems = args.systems.split(",")
+    for name in systems:
+        _system(name)  # an unknown name fails here, before any case runs
+    seeds = range(args.first_seed, args.first_seed + args.seeds)
     cases = [
-        (name, fam, der, seed) for name in SYSTEMS for fam in FAMILIES
-        for der in DERIVATIVES[name] for seed in range(args.seeds)
+        (name, fam, der, seed, args.samples, args.noise) for name in systems for fam in FAMILIES
+        for der in args.derivatives.split(",") for seed in seeds
     ]  # fmt: skip
     from tqdm import tqdm
 
@@ -232,7 +255,9 @@ def main(argv=None):
     text = [
         "# Sensor families on a control input, a transient and twenty channels",
         "",
-        f"Command: `python validation/sensors.py --seeds {args.seeds}`. 2000 samples; "
+        f"Command: `python validation/sensors.py {' '.join(argv or sys.argv[1:])}`. "
+        f"{args.samples} samples, Gaussian noise {100 * args.noise:.3g} % of each "
+        "state's spread; "
         "families and contamination of `robust_sindy.zoo` (`SENSOR_FAMILIES`), and "
         "`glitches+irregular`: the glitches at uniformly random times. Cells: "
         "exact support of `HuberSINDy()` over the seeds (PySINDy STLSQ at its default "
