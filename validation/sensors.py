@@ -240,11 +240,18 @@ def main(argv=None):
     args = parser.parse_args(argv)
     systems = args.systems.split(",")
     for name in systems:
-        _system(name)  # an unknown name fails here, before any case runs
+        try:
+            _system(name)  # an unknown name fails here, before any case runs
+        except ValueError as exc:
+            parser.error(f"--systems: {exc}")
+    derivatives = args.derivatives.split(",")
+    for der in derivatives:
+        if der not in zoo.DERIVATIVES:
+            parser.error(f"--derivatives: {der!r} is not one of {', '.join(zoo.DERIVATIVES)}")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     cases = [
         (name, fam, der, seed, args.samples, args.noise) for name in systems for fam in FAMILIES
-        for der in args.derivatives.split(",") for seed in seeds
+        for der in derivatives for seed in seeds
     ]  # fmt: skip
     from tqdm import tqdm
 
@@ -253,7 +260,9 @@ def main(argv=None):
     folder = Path(args.out)
     write_rows(rows, folder / "sensors.csv")
     text = [
-        "# Sensor families on a control input, a transient and twenty channels",
+        "# Sensor families on a control input, a transient and twenty channels"
+        if systems == list(SYSTEMS)
+        else f"# Sensor families on {', '.join(systems)}",
         "",
         f"Command: `python validation/sensors.py {' '.join(argv or sys.argv[1:])}`. "
         f"{args.samples} samples, Gaussian noise {100 * args.noise:.3g} % of each "
