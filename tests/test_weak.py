@@ -8,6 +8,7 @@ import pytest
 import robust_sindy as rs
 from robust_sindy.estimator import (
     MIN_INDEPENDENT_ROWS_PER_TERM,
+    MIN_ROWS_PER_TERM,
     OUTLIER_EVIDENCE,
     WEAK_WITH_OUTLIERS_NOISE,
 )
@@ -218,10 +219,10 @@ def test_auto_takes_the_strong_form_with_fewer_independent_rows_than_terms():
         traj = Trajectories.from_user(x[:n], t[:n])
         h = support_half_width(traj, screen).half_width
         theta = library.fit_transform(screen.repaired)
-        independent[n] = (
-            weak_rows(traj, screen.repaired, theta, h, min_rows=4 * theta.shape[1]).effective_rows()
-            / theta.shape[1]
-        )
+        # The rows the estimator builds (at least twice its minimum per term).
+        min_rows = 2 * MIN_ROWS_PER_TERM * theta.shape[1]
+        rows = weak_rows(traj, screen.repaired, theta, h, min_rows=min_rows)
+        independent[n] = rows.effective_rows() / theta.shape[1]
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", rs.IdentificationWarning)
             fits[n] = rs.HuberSINDy(library=library).fit(x[:n], t[:n])
