@@ -137,10 +137,12 @@ def _family_index(family: str) -> int:
     return len(zoo.ALL_FAMILIES) + FAMILIES.index(family)
 
 
-def run_case(
+def make_record(
     name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000,
     noise: float = zoo.BASE_NOISE,
 ):  # fmt: skip
+    """One case's record: the system, the sample times, the true states, the control
+    (or None), the true derivatives and the states as measured."""
     s = _system(name)
     rng = np.random.default_rng(
         [seed, _family_index(family), zoo.DERIVATIVES.index(derivatives), len(name)]
@@ -151,6 +153,14 @@ def run_case(
     x, u, dx = _simulate(s, t, seed)
     params = dataclasses.replace(zoo.ZOO_CONTAMINATION, base_noise=noise)
     noisy, _ = zoo.contaminate_family(x, outliers, rng, params)
+    return s, t, x, u, dx, noisy
+
+
+def run_case(
+    name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000,
+    noise: float = zoo.BASE_NOISE,
+):  # fmt: skip
+    s, t, _, u, dx, noisy = make_record(name, family, derivatives, seed, n_samples, noise)
     x_dot = dx if derivatives == "exact" else None
     rows = []
     for method in ("huber", "stlsq"):
