@@ -10,7 +10,7 @@ from numbers import Real
 import numpy as np
 
 from .core.certificates import certify
-from .core.scaling import robust_scale
+from .core.scaling import fitted_scale_factor, robust_scale
 from .core.validation import (
     as_float_array,
     check_coef,
@@ -548,10 +548,13 @@ def auto_delta(
     """Per-column Huber threshold from the residual scale of a robust pilot fit.
 
     Start from the residuals of ordinary least squares; then repeat up to ``n_iter``
-    times: ``delta = 1.345 * robust_scale(r)``, refit the unpenalised Huber regression
-    (``lam = 0``) with that ``delta``, take its residuals ``r``; stop once ``delta``
-    changes by less than ``rtol`` (relative).  With the fast path, each refit starts
-    from the previous one's coefficients (the first from least squares).
+    times: ``delta = 1.345 * c * robust_scale(r)``, with ``c = sqrt(m / (m - p))``
+    (:func:`~robust_sindy.core.scaling.fitted_scale_factor`: the residuals of a fit of
+    all ``p`` columns to ``m`` samples are that much narrower than the errors), refit
+    the unpenalised Huber regression (``lam = 0``) with that ``delta``, take its
+    residuals ``r``; stop once ``delta`` changes by less than ``rtol`` (relative).
+    With the fast path, each refit starts from the previous one's coefficients (the
+    first from least squares).
 
     Parameters
     ----------
@@ -591,9 +594,11 @@ def auto_delta(
     if method not in ("admm", "cvxpy"):
         raise ValueError(f"method must be 'admm' or 'cvxpy' for the pilot fit; got {method!r}")
     lower = delta_floor(y, floor)
+    # The residuals of a fit of every column are narrower than the errors.
+    factor = HUBER_EFFICIENCY_CONSTANT * fitted_scale_factor(*theta.shape)
     if start is None:
         coef = np.linalg.lstsq(theta, y, rcond=None)[0]
-        delta = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(y - theta @ coef), lower)
+        delta = np.maximum(factor * robust_scale(y - theta @ coef), lower)
     else:
         delta = np.maximum(np.broadcast_to(np.asarray(start[0], dtype=float), lower.shape), lower)
         coef = np.array(start[1], dtype=float).reshape(theta.shape[1], y.shape[1])
@@ -607,7 +612,7 @@ def auto_delta(
         res = fit(theta, y[:, todo], method=method, delta=delta[todo], lam=0.0, **options)
         coef[:, todo] = res.coef
         r = y[:, todo] - theta @ res.coef
-        new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(r), lower[todo])
+        new = np.maximum(factor * robust_scale(r), lower[todo])
         change = np.abs(new - delta[todo]) / delta[todo]
         delta[todo] = new
         todo = todo[change >= rtol]

@@ -53,8 +53,16 @@ def test_rows_sampling_and_library_ensembles(lorenz):
     assert ens.available_.shape == (5, 10) and (~ens.available_).sum() == 10
     # a term a model did not have is zero in its coefficients
     assert np.all(ens.coef_stack_.transpose(0, 2, 1)[~ens.available_] == 0)
+    # The members whose library kept every true term of an equation select them: with
+    # two of the ten terms dropped, the others are misspecified for some equation.
     truth = system.true_coef().T != 0
-    assert ens.inclusion_probability_[truth].min() >= 0.5
+    hits = [
+        ens.coef_stack_[i, k, truth[k]] != 0
+        for k in range(truth.shape[0])
+        for i in range(ens.available_.shape[0])
+        if ens.available_[i, truth[k]].all()
+    ]
+    assert len(hits) >= 3 and np.mean(np.concatenate(hits)) >= 0.75
 
 
 def test_uncertain_terms_are_named_in_a_warning(lorenz):

@@ -666,3 +666,40 @@ def test_the_row_screen_of_overlapping_integrals_flags_noise_only_at_its_rate():
         extra += found.outliers.sum() - bad.size
         extra_plain += screen_rows(rows.G, b).outliers.sum() - bad.size
     assert extra_plain > extra
+
+
+@pytest.mark.parametrize("seed", range(5))
+def test_auto_delta_counts_the_columns_the_pilot_fitted(seed):
+    # With four samples per column the residuals of the fit on every column are
+    # sqrt(1 - p / m) = 0.87 of the errors' scale: delta is brought back up.
+    rng = np.random.default_rng(seed)
+    m, p, sigma = 2000, 500, 0.3
+    theta = rng.normal(size=(m, p))
+    y = theta[:, :3] @ np.array([1.0, -2.0, 0.5]) + sigma * rng.normal(size=m)
+    assert abs(auto_delta(theta, y) / 1.345 - sigma) <= 0.1 * sigma
+
+
+def test_the_criterion_counts_the_correlation_time_of_the_chosen_residuals():
+    # Errors correlated over about ten samples, and many columns that vary slowly in
+    # time: the fit on every column takes out the slow part of the errors, and its
+    # residuals understate their correlation time.
+    rng = np.random.default_rng(3)
+    m, p = 600, 120
+    t = np.linspace(0.0, 1.0, m)
+    theta = np.column_stack(
+        [np.ones(m)] + [np.cos(np.pi * (j + 1) * t + rng.uniform(0, 6)) for j in range(p - 1)]
+    )
+    e = np.zeros(m)
+    for i in range(1, m):
+        e[i] = 0.8 * e[i - 1] + 0.1 * rng.normal()
+    y = theta[:, [1, 4]] @ np.array([1.0, -0.7]) + e
+    seg = [slice(0, m)]
+    sel = select(theta, y, segments=seg, subsets=False)
+    delta = sel.delta[0]
+    dense = np.linalg.lstsq(theta, y, rcond=None)[0]
+    chosen = sel.candidates[sel.index[0], :, 0]
+    psi = rs.core.losses.huber_psi
+    tau_dense = rs.selection.correlation_time(psi(y - theta @ dense, delta), seg)
+    tau_chosen = rs.selection.correlation_time(psi(y - theta @ chosen, delta), seg)
+    assert tau_chosen[0] > 2 * tau_dense[0]  # the premise: the densest fit whitened them
+    assert sel.tau[0] >= tau_chosen[0]  # the criterion counted the chosen residuals'

@@ -2,6 +2,8 @@
 
 * :func:`robust_scale` -- the Gaussian scale of the bulk of a sample (MAD refined by a
   truncated variance), per column.
+* :func:`fitted_scale_factor` -- how much narrower the residuals of a fit are than its
+  errors.
 * :class:`Standardizer` -- divides library columns and targets by their root mean
   square (a statistic that is homogeneous of degree one, so that rescaling a state, a
   derivative or the time unit changes the standardised data only by rounding), and maps
@@ -23,7 +25,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.stats
 
-__all__ = ["Standardizer", "robust_scale"]
+__all__ = ["Standardizer", "fitted_scale_factor", "robust_scale"]
 
 
 # The median absolute deviation of a standard normal variable, Phi^-1(3/4).
@@ -34,6 +36,21 @@ _MAD_NORMAL = float(scipy.stats.norm.ppf(0.75))
 def _truncated_variance(c: float) -> float:
     """The variance of a standard normal variable truncated to ``[-c, c]``."""
     return float(1.0 - 2 * c * scipy.stats.norm.pdf(c) / (2 * scipy.stats.norm.cdf(c) - 1))
+
+
+def fitted_scale_factor(m: int, p: int) -> float:
+    """``sqrt(m / (m - p))``: the factor that brings the scale of the residuals of a
+    fit of ``p`` coefficients on ``m`` samples up to that of the errors.
+
+    A least-squares fit leaves residual ``i`` the variance ``(1 - h_ii) sigma^2`` (``h``
+    the hat matrix, whose diagonal sums to ``p``): on average ``(1 - p / m)
+    sigma^2``.  With a few terms per hundred samples the factor is within a percent of
+    1; with four samples per term, as in a degree-2 library of 30 states fitted to
+    2000 samples, the residuals' scale is 13 % short of the errors'.  At ``m <= p``
+    (residuals at rounding level) it is ``sqrt(m)``.
+    """
+    m, p = int(m), int(p)
+    return float(np.sqrt(m / max(m - p, 1)))
 
 
 def robust_scale(residuals, cutoff: float = 3.0, n_iter: int = 20) -> np.ndarray:

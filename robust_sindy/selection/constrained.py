@@ -41,7 +41,7 @@ import scipy.sparse.csgraph
 
 from ..core.constraints import LinearConstraints
 from ..core.losses import huber, huber_psi
-from ..core.scaling import robust_scale
+from ..core.scaling import fitted_scale_factor, robust_scale
 from ..core.statistics import correlation_time
 from ..fitting import HUBER_EFFICIENCY_CONSTANT, delta_floor, fit
 from .criteria import bic_from_loss, bic_terms, blocked_folds
@@ -254,7 +254,10 @@ def constrained_selection(
     for _ in range(DELTA_ROUNDS):
         full, _result = _refit(kept, every, delta, constraints, method, solver, full)
         r = kept.y - kept.theta @ full
-        new = np.maximum(HUBER_EFFICIENCY_CONSTANT * robust_scale(r), delta_floor(kept.y))
+        new = np.maximum(
+            HUBER_EFFICIENCY_CONSTANT * fitted_scale_factor(*kept.theta.shape) * robust_scale(r),
+            delta_floor(kept.y),
+        )
         change = np.abs(new - delta) / delta
         delta = new
         if change.max() < 1e-2:

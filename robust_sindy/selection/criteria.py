@@ -134,6 +134,10 @@ class Selection:
     from_subsets : ndarray of bool, shape (n,)
         Equations whose chosen support came from that search, not the path; ``index``
         and ``lam`` are then the best path point's.
+    tau : ndarray, shape (n,)
+        For ``criterion="bic"``, the correlation time of the residuals the criterion
+        counted (the larger of the most complete model's and the chosen path point's;
+        see :func:`select`); ones otherwise.
     """
 
     coef: np.ndarray
@@ -151,6 +155,7 @@ class Selection:
     subset_size: np.ndarray
     from_subsets: np.ndarray
     rival_margin: np.ndarray
+    tau: np.ndarray | None = None
 
     def rival_margin_to(self, reference: np.ndarray) -> np.ndarray:
         """:attr:`rival_margin` with the model finally reported, ``reference`` (p, n,
@@ -258,6 +263,33 @@ def _scores(theta, y, candidates, used, delta, tau):
         loss = huber(y[:, k] - theta[:, on] @ candidates[i, on, k], delta[k]).sum()
         out[i, k] = bic_from_loss(loss, on.size, sigma[k], penalty[k], tau[k])
     return out
+
+
+def _settled_scores(theta, y, candidates, used, delta, tau, segments):
+    """The correlation times (n,) and the BIC (:func:`_scores`) of the candidates, with
+    each column's correlation time that of the residuals of the candidate it chooses.
+
+    Starting from ``tau`` (that of the most complete model's residuals), the candidates
+    are scored, and the correlation time is raised to that of the chosen candidate's
+    residuals, until the choice no longer raises it.  The most complete model fits
+    every column, and library columns vary slowly in time: with a few samples per
+    column its residuals have lost the slow part of the errors (the correlated errors
+    of numerical derivatives over wide windows above all), and a criterion that takes
+    its correlation time from them counts too many independent samples and prefers
+    candidates fitted to those errors.  The correlation time only grows, and a
+    candidate chosen again leaves it as it is, so this ends within as many rounds as
+    there are candidates.
+    """
+    cols = np.arange(y.shape[1])
+    scores = _scores(theta, y, candidates, used, delta, tau)
+    for _ in range(candidates.shape[0]):
+        chosen = candidates[_pick(scores), :, cols].T
+        new = np.maximum(tau, correlation_time(huber_psi(y - theta @ chosen, delta), segments))
+        if np.array_equal(new, tau):
+            break
+        tau = new
+        scores = _scores(theta, y, candidates, used, delta, tau)
+    return tau, scores
 
 
 def _subset_candidates(stage: _Stage, reference, tau, best):
@@ -451,7 +483,10 @@ def select(
     left are the densest and the most expensive, and as ``lam`` falls the proposal
     tends to that limit (``nan`` scores past the stop; where the path is solved point
     by point, those points are not solved at all: ``path.walked``).  The limit is also
-    the most complete model: its residuals give the correlation time of the BIC.
+    the most complete model: its residuals give the BIC its first correlation time,
+    which the residuals of the candidate chosen then raise until the choice settles
+    (``Selection.tau``): with few samples per term the most complete model's residuals
+    have lost the slow part of the errors.
 
     4. ``criterion="bic"`` (and ``subsets``): the best few supports of every size up
        to a budget, by weighted least squares under the Huber weights of the limit
@@ -545,11 +580,12 @@ def select(
             candidates = _stage_all(stage, full.coef)
     if criterion == "bic":
         candidates = walk.candidates
-        # Correlation time of the residuals of the most complete model: the selection
-        # stage of the unpenalised fit, the proposals' limit.
+        # Correlation time of the residuals of the most complete model (the selection
+        # stage of the unpenalised fit, the proposals' limit), then of the candidate
+        # chosen, until the choice settles.
         densest = walk.limit
         tau = correlation_time(huber_psi(y - theta @ densest, delta_k), segments)
-        scores = _scores(theta, y, candidates, walk.used, delta_k, tau)
+        tau, scores = _settled_scores(theta, y, candidates, walk.used, delta_k, tau, segments)
     else:
         scores = _cv_scores(theta, y, full.lams, delta_k, tol, n_folds, method, solver, progress,
                             path_options)  # fmt: skip
@@ -595,4 +631,5 @@ def select(
         subset_scores=subset_scores,
         subset_size=subset_size,
         from_subsets=from_subsets,
+        tau=tau if criterion == "bic" else np.ones(y.shape[1]),
     )
