@@ -52,8 +52,8 @@ def derivative_table(s, t, x, u, dx, noisy, windows) -> list[dict]:
     screen = temporal_screen(noisy, t)
     usable = ~screen.flags & np.isfinite(noisy)
     states = screen.repaired
-    inputs = states if u is None else np.hstack([states, np.reshape(u, (len(t), -1))])
-    lib = PolynomialLibrary(degree=s.degree).fit(inputs).transform(inputs)
+    # The system's own library: its columns in the order of its coefficients.
+    lib = s.library(states if u is None else np.hstack([states, np.reshape(u, (len(t), -1))]))
     basis = np.linalg.svd(lib / np.linalg.norm(lib, axis=0), full_matrices=False)[0]
     norm = np.linalg.norm(dx)
     rows = []

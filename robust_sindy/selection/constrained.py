@@ -251,13 +251,11 @@ def constrained_selection(
     # scale as auto_delta measures it.
     every = np.ones((p, n), dtype=bool)
     full = None
+    factor = HUBER_EFFICIENCY_CONSTANT * fitted_scale_factor(*kept.theta.shape)
     for _ in range(DELTA_ROUNDS):
         full, _result = _refit(kept, every, delta, constraints, method, solver, full)
         r = kept.y - kept.theta @ full
-        new = np.maximum(
-            HUBER_EFFICIENCY_CONSTANT * fitted_scale_factor(*kept.theta.shape) * robust_scale(r),
-            delta_floor(kept.y),
-        )
+        new = np.maximum(factor * robust_scale(r), delta_floor(kept.y))
         change = np.abs(new - delta) / delta
         delta = new
         if change.max() < 1e-2:
