@@ -262,6 +262,11 @@ class Diagnostics:
         The weak form's test functions (0 otherwise).
     formulation_reason : str
         Which formulation was used, and why.
+    errors_in_variables : ndarray of int (n,)
+        With the weak form, per equation: 1 where the support was replaced by one that
+        scored better under the noise its own terms carry
+        (:mod:`robust_sindy.selection.variables`), 0 where the chosen support stayed,
+        -1 where the score was not computed (the strong form, no measured noise).
     missing_states : ndarray of int (n_states,)
         Missing readings (NaN) of each state, filled by the temporal screen's local fits
         (:mod:`robust_sindy.timeseries.missing`).
@@ -312,6 +317,7 @@ class Diagnostics:
     support_half_width: float = float("nan")
     n_rows: int = 0
     formulation_reason: str = ""
+    errors_in_variables: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     missing_states: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     missing_in_gaps: int = 0
     missing_controls: int = 0
@@ -400,6 +406,14 @@ class Diagnostics:
             f"{np.isfinite(self.pruned).sum(axis=1).tolist()}",
             f"  aliased terms left out: {', '.join(self.aliased) or 'none'}",
             f"  formulation: {self.formulation_reason or self.formulation}",
+            "  supports replaced under the noise their terms carry (weak form): "
+            + (
+                f"equations {np.flatnonzero(self.errors_in_variables == 1).tolist()}"
+                if np.any(self.errors_in_variables == 1)
+                else "none"
+                if np.any(self.errors_in_variables == 0)
+                else "not scored"
+            ),
             "  missing readings: "
             + (
                 f"states {self.missing_states.tolist()} (filled by local fits; "
@@ -822,6 +836,7 @@ def diagnose(
     missing=None,
     constrained=None,
     bounded=None,
+    rescored=None,
 ) -> Diagnostics:
     """The diagnostics of a fit from its stages' outcomes: the kept problem
     (:class:`~robust_sindy.selection.problem.Problem`), the noise floor, the choice of
@@ -946,6 +961,7 @@ def diagnose(
         support_half_width=float("nan") if weak is None else weak.half_width,
         n_rows=0 if weak is None else weak.n_rows,
         formulation_reason=formulation,
+        errors_in_variables=(np.full(n, -1) if rescored is None else rescored.switched.astype(int)),
         temporal_flagged_left_out=int(
             entry_flags.sum()
             if weak is not None

@@ -68,6 +68,7 @@ from .selection.final import FinalSelection, final_selection
 from .selection.problem import Problem
 from .selection.rows import RowScreen, screen_samples
 from .selection.stability import boundedness, quadratic_parts
+from .selection.variables import RowNoise, rescore_weak
 from .simulate import integrate, simulation_inputs
 from .timeseries.derivatives import (
     DERIVATIVE_WINDOWS,
@@ -463,6 +464,7 @@ class HuberSINDy(BaseEstimator):
             row_flags = weak.touched(flags | missing.controls_suspect, data)[:, None]
         scaler = Standardizer.from_data(design, deriv.y)
         noise = noise_columns(library, z, temporal, scaler.theta_scale)
+        sample_noise = noise
         if weak is not None:
             noise = weak.noise(noise, data)
         problem = Problem(design, deriv.y, scaler, segments, noise)
@@ -494,6 +496,13 @@ class HuberSINDy(BaseEstimator):
             kept, choice, method=self.method, solver=self.solver, options=options,
             threshold=self.threshold, refit=self.refit,
         )  # fmt: skip
+        rescored = None
+        if weak is not None and choice.selection is not None and sample_noise is not None:
+            fitted, rescored = rescore_weak(
+                kept, floor.design, choice.selection, fitted,
+                RowNoise.of_weak(weak, rows.keep, sample_noise, temporal.scale / scaler.y_scale),
+                method=self.method, solver=self.solver, options=options,
+            )  # fmt: skip
         stages.start("final selection")
         if choice.selection is not None:
             final = final_selection(
@@ -527,6 +536,7 @@ class HuberSINDy(BaseEstimator):
             entry_flags=outlying, row_flags=row_flags, deriv=deriv, missing=missing,
             feature_names=library.get_feature_names(), selection_tol=self.selection_tol,
             method=pilot, weak=weak, covered=covered, formulation=why, constrained=refit,
+            rescored=rescored,
             bounded=_boundedness(library, final.coef, data.n_states),
         )  # fmt: skip
         stages.close()

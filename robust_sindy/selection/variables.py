@@ -1,0 +1,375 @@
+"""Errors in the variables in the weak form: candidates scored under the noise their own
+terms carry.
+
+In the weak form every row integrates the measured states against a test function:
+``b_r = -sum_i s_ri x(t_i)`` and ``G_rj = sum_i w_ri theta_j(x(t_i))``.  The states'
+noise ``e`` enters both, and the residual of coefficients ``xi`` carries, to first
+order,
+
+    eta(xi) = -S e_k - sum_l W diag(g_l) e_l,    g_l = sum_j xi_j d theta_j / d x_l,
+
+(``S``, ``W`` the test functions' slopes and weights at the samples, ``g_l`` the
+candidate model's derivative with respect to state ``l`` at every sample).  Its
+covariance ``C(xi) = D(xi) D(xi)^T`` depends on the candidate: a model with large
+coefficients on noisy columns (a small difference of large terms, such as
+``x' = 36 (y - x)`` where ``x`` follows ``y`` closely) has residuals far noisier than
+the states' own noise, and a criterion that reads every candidate's residuals on one
+scale prefers a wrong model with small coefficients, or a dense one whose extra terms
+fit part of the columns' noise.
+
+:func:`gls_score` fits a support by generalised least squares under ``C(xi)``,
+updating ``C`` from the fit (the approximate maximum-likelihood estimator of
+errors-in-variables regression, which is consistent where least squares is not), and
+returns its chi-square ``r^T C^{-1} r``: about the number of rows for a support that
+holds the true model, more where the support misses part of it, whatever the scale of
+its coefficients.  :func:`rescore_supports` scores the selection's candidates so, each
+with ``log(rows)`` per term (whitened rows are independent), and reports the
+equations where another candidate (or one a stepwise search under the same score
+reaches from the best of them) scores better than the chosen support by more than
+:data:`~robust_sindy.selection.criteria.MIN_BIC_MARGIN`, where the states' noise
+explains that candidate's residuals (:data:`NOISE_EXPLAINS`).
+
+Units: everything is in the standardised problem's units (columns over
+``theta_scale``, targets over ``y_scale``), where the noise of the columns is
+:func:`~robust_sindy.selection.bias.noise_columns`'; the chi-square does not depend on
+them.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass, field
+
+import numpy as np
+import scipy.linalg
+import scipy.sparse
+
+from .bias import LibraryNoise
+from .choice import Fitted
+from .criteria import MIN_BIC_MARGIN
+from .problem import Problem
+from .refit import refit_column
+
+__all__ = [
+    "GLS_ROUNDS",
+    "Rescored",
+    "RowNoise",
+    "gls_score",
+    "rescore_supports",
+    "rescore_weak",
+]
+
+_PBTRF, _TBTRS = scipy.linalg.get_lapack_funcs(("pbtrf", "tbtrs"), dtype=np.float64)
+
+#: Rounds of the generalised least squares, each with the covariance of the last fit.
+GLS_ROUNDS = 4
+#: The stepwise search scores this many of its best-ranked moves under their own
+#: covariance (the ranking uses the current fit's).
+MOVES_SCORED = 3
+#: A support replaces the chosen one only where the states' noise explains its
+#: residuals: its chi-square is at most this many times the number of rows (about 1
+#: when it does; far more where the residuals hold what the noise model leaves out,
+#: such as the quadrature's error on nearly noise-free states, which would make every
+#: term look significant).
+NOISE_EXPLAINS = 2.0
+
+
+@dataclass
+class RowNoise:
+    """How the samples' noise enters the weak rows (see the module docstring).
+
+    Attributes
+    ----------
+    weights, slopes : sparse arrays (K, m)
+        The test functions and their derivatives times the quadrature weights at the
+        samples, for the rows kept (block diagonal over the trajectories).
+    columns : LibraryNoise
+        The noise of the standardised library columns at every sample per state
+        (``sigma_l d theta / d x_l / theta_scale``).
+    target : ndarray (n,)
+        Each state's noise over its target's scale (``sigma_k / y_scale_k``).
+    """
+
+    weights: scipy.sparse.csr_array
+    slopes: scipy.sparse.csr_array
+    columns: LibraryNoise
+    target: np.ndarray
+    _products: list | None = field(default=None, repr=False)
+
+    @classmethod
+    def of_weak(cls, weak, keep, columns: LibraryNoise, target) -> RowNoise:
+        """From the weak rows (a :class:`~robust_sindy.timeseries.weak.WeakRows`), the
+        rows ``keep`` (bool, K), the samples' column noise and the targets' noise."""
+
+        def stacked(parts):
+            whole = scipy.sparse.block_diag(
+                [scipy.sparse.csr_array(a) for a in parts], format="csr"
+            )
+            return scipy.sparse.csr_array(whole[np.flatnonzero(keep)])
+
+        return cls(stacked(weak.weights), stacked(weak.slopes), columns, np.asarray(target))
+
+    def factor(self, xi: np.ndarray, k: int) -> scipy.sparse.csr_array:
+        """``D(xi)`` (K, m n) for equation ``k``: the residual's noise is ``D e`` for
+        independent ``e`` of unit variance, one block of samples per state."""
+        blocks = []
+        for state, (cols, values) in enumerate(
+            zip(self.columns.cols, self.columns.values, strict=True)
+        ):
+            g = values @ xi[cols] if cols.size else np.zeros(values.shape[0])
+            block = -(self.weights @ scipy.sparse.diags_array(g))
+            if state == k:
+                block = block - self.target[k] * self.slopes
+            blocks.append(block)
+        return scipy.sparse.hstack(blocks, format="csr")
+
+    def covariance(self, xi: np.ndarray, k: int) -> scipy.sparse.csr_array:
+        """``C(xi) = D(xi) D(xi)^T`` (K, K), sparse: rows share noise only where their
+        test functions share samples."""
+        d = self.factor(xi, k)
+        return (d @ d.T).tocsr()
+
+    def band(self, xi: np.ndarray, k: int) -> np.ndarray:
+        """The lower band of :meth:`covariance` (``out[d, j] = C[j + d, j]``, LAPACK's
+        banded storage), from products of the test functions formed once:
+        ``C = W diag(sum_l g_l^2) W^T + t_k (W diag(g_k) S^T + S diag(g_k) W^T) +
+        t_k^2 S S^T``."""
+        if self._products is None:
+            self._products = _band_products(self.weights, self.slopes)
+        ww, ws, ss, at = self._products
+        q = np.zeros(self.weights.shape[1])
+        own = np.zeros_like(q)
+        for state, (cols, values) in enumerate(
+            zip(self.columns.cols, self.columns.values, strict=True)
+        ):
+            if cols.size:
+                g = values @ xi[cols]
+                q += g * g
+                if state == k:
+                    own = g
+        t = float(self.target[k])
+        out = np.zeros(at[0])
+        out[at[1]] = ww @ q + t * (ws @ own) + t * t * ss
+        return out.reshape(at[2])
+
+
+def _band_products(w, s):
+    """The rows' elementwise products ``W_{j+d} W_j``, ``W_{j+d} S_j + S_{j+d} W_j``
+    (sparse, stacked over the offsets ``d`` of the band) and ``S_{j+d} . S_j``, with
+    where each row goes in the band's storage (its size, the flat positions, its
+    shape)."""
+    pattern = (abs(w) + abs(s)).astype(bool).astype(float)
+    overlap = (pattern @ pattern.T).tocoo()
+    width = int(np.max(np.abs(overlap.row - overlap.col))) if overlap.nnz else 0
+    rows = w.shape[0]
+    ww, ws, ss, flat = [], [], [], []
+    for d in range(width + 1):
+        hi_w, lo_w = w[d:], w[: rows - d]
+        hi_s, lo_s = s[d:], s[: rows - d]
+        ww.append(scipy.sparse.csr_array(hi_w.multiply(lo_w)))
+        ws.append(scipy.sparse.csr_array(hi_w.multiply(lo_s) + hi_s.multiply(lo_w)))
+        ss.append(np.asarray(hi_s.multiply(lo_s).sum(axis=1)).ravel())
+        flat.append(d * rows + np.arange(rows - d))
+    shape = (width + 1, rows)
+    at = ((width + 1) * rows, np.concatenate(flat), shape)
+    return (
+        scipy.sparse.vstack(ww, format="csr"),
+        scipy.sparse.vstack(ws, format="csr"),
+        np.concatenate(ss),
+        at,
+    )
+
+
+def _whitener(band: np.ndarray):
+    """A function applying ``L^{-1}`` (``C = L L^T``, ``band`` the lower band of ``C``:
+    neighbouring rows share samples) to a matrix of rows; None where ``C`` is not
+    positive definite."""
+    band = band.copy()
+    if not np.all(np.isfinite(band)) or not band[0].max() > 0:
+        return None
+    band[0] += np.finfo(float).eps * band[0].max()  # rounding of nearly shared rows
+    factor, info = _PBTRF(band, lower=1)  # LAPACK's banded Cholesky (scipy's wrapper)
+    if info != 0:
+        return None
+
+    def apply(a):
+        rows = np.asarray(a, dtype=float).reshape(band.shape[1], -1)
+        out, info = _TBTRS(factor, rows, uplo="L")
+        return out.reshape(np.shape(a)) if info == 0 else np.full(np.shape(a), np.nan)
+
+    return apply
+
+
+def gls_score(g, y, support, start, noise: RowNoise, k: int, rounds: int = GLS_ROUNDS):
+    """Chi-square of the support ``support`` (bool, p) of equation ``k`` fitted by
+    generalised least squares under the noise its own coefficients carry (``g`` (K, p),
+    ``y`` (K,), standardised; ``start`` (p,) the first coefficients), and the fitted
+    coefficients (p,); ``(inf, start)`` where the covariance is singular."""
+    on = np.flatnonzero(support)
+    xi = np.zeros(g.shape[1])
+    xi[on] = start[on]
+    chi2 = np.inf
+    for _ in range(rounds):
+        white = _whitener(noise.band(xi, k))
+        if white is None:
+            return np.inf, xi
+        both = white(np.column_stack([g[:, on], y]))
+        gw, yw = both[:, :-1], both[:, -1]
+        sol = np.linalg.lstsq(gw, yw, rcond=None)[0] if on.size else np.zeros(0)
+        r = yw - gw @ sol
+        chi2 = float(r @ r)
+        moved = np.max(np.abs(sol - xi[on]), initial=0.0) > 1e-8 * max(
+            np.max(np.abs(sol), initial=0.0), np.finfo(float).tiny
+        )
+        xi = np.zeros(g.shape[1])
+        xi[on] = sol
+        if not moved:
+            break
+    return chi2, xi
+
+
+def _stepwise(g, y, key, score, noise: RowNoise, k: int, penalty: float, memo, steps: int = 40):
+    """From the support ``key`` (bytes of a bool array) with score ``score``: add or drop
+    the one term that lowers the score most, until none does (``steps`` at most).
+    Every drop is scored under its own covariance (:func:`gls_score`, from the current
+    fit): dropping a term the others imitated raises the remaining coefficients, and
+    with them the noise they carry, which a ranking under the current covariance does
+    not see.  Additions are ranked under the current covariance (one whitening for
+    all), the :data:`MOVES_SCORED` best then scored under their own.  ``memo`` holds
+    the supports already fitted (bytes: chi-square, coefficients)."""
+
+    def fitted(trial, start):
+        key = trial.tobytes()
+        if key not in memo:
+            memo[key] = gls_score(g, y, trial, start, noise, k)
+        return memo[key]
+
+    support = np.frombuffer(key, dtype=bool).copy()
+    xi = np.zeros(g.shape[1])
+    if support.any():
+        _, xi = fitted(support, xi)
+    for _ in range(steps):
+        white = _whitener(noise.band(xi, k))
+        if white is None:
+            break
+        gw, yw = white(g), white(y)
+        ranked = []
+        for j in np.flatnonzero(~support & np.any(gw != 0, axis=0)):
+            on = np.flatnonzero(support | (np.arange(g.shape[1]) == j))
+            sol = np.linalg.lstsq(gw[:, on], yw, rcond=None)[0]
+            r = yw - gw[:, on] @ sol
+            ranked.append((float(r @ r), int(j)))
+        moves = [j for _, j in sorted(ranked)[:MOVES_SCORED]]
+        if support.sum() > 1:
+            moves += np.flatnonzero(support).tolist()
+        best = None
+        for j in moves:
+            trial = support.copy()
+            trial[j] = not trial[j]
+            chi2, new_xi = fitted(trial, xi)
+            new_score = chi2 + penalty * int(trial.sum())
+            if new_score < score and (best is None or new_score < best[2]):
+                best = (trial, new_xi, new_score)
+        if best is None:
+            break
+        support, xi, score = best
+    return support.tobytes(), score
+
+
+@dataclass
+class Rescored:
+    """Outcome of :func:`rescore_supports`.
+
+    Attributes
+    ----------
+    support : ndarray of bool (p, n)
+        Per equation, the candidate support with the lowest score (the chosen one
+        unless another beat it by more than the margin).
+    switched : ndarray of bool (n,)
+        Equations whose support was replaced.
+    chosen_score, best_score : ndarray (n,)
+        The score of the support the selection chose and of the best candidate
+        (``nan`` for equations not rescored).
+    candidates : ndarray of int (n,)
+        The distinct supports scored per equation.
+    """
+
+    support: np.ndarray
+    switched: np.ndarray
+    chosen_score: np.ndarray
+    best_score: np.ndarray
+    candidates: np.ndarray
+
+
+def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Rescored:
+    """Score the chosen support and every candidate of ``pools`` (arrays (L, p, n) of
+    coefficients, standardised, whose nonzero patterns are the candidates) per
+    equation by :func:`gls_score` plus ``log(rows)`` per term; replace the chosen support
+    where another beats it by more than ``margin`` and has a chi-square of at most
+    :data:`NOISE_EXPLAINS` times the rows.  ``chosen`` (p, n): the chosen coefficients
+    (standardised)."""
+    rows = g.shape[0]
+    n = y.shape[1]
+    penalty = np.log(max(rows, 2))
+    support = chosen != 0
+    switched = np.zeros(n, dtype=bool)
+    chosen_score = np.full(n, np.nan)
+    best_score = np.full(n, np.nan)
+    counts = np.zeros(n, dtype=int)
+    for k in range(n):
+        starts = {support[:, k].tobytes(): chosen[:, k]}
+        for pool in pools:
+            for c in pool[:, :, k]:
+                key = (c != 0).tobytes()
+                if (c != 0).any() and key not in starts:
+                    starts[key] = c
+        counts[k] = len(starts)
+        scores, memo = {}, {}
+        for key, start in starts.items():
+            s = np.frombuffer(key, dtype=bool)
+            memo[key] = gls_score(g, y[:, k], s, start, noise, k)
+            scores[key] = memo[key][0] + penalty * int(s.sum())
+        best = min(scores, key=scores.get)
+        # Local searches from the best candidate, from the chosen support and from the
+        # empty model: the path and the subsets were ranked by a criterion that reads
+        # the columns' noise as signal, and may not hold the support this score prefers.
+        for start in (best, support[:, k].tobytes(), np.zeros(g.shape[1], dtype=bool).tobytes()):
+            found, score = _stepwise(
+                g, y[:, k], start, scores.get(start, np.inf), noise, k, penalty, memo
+            )
+            if score < scores.get(found, np.inf):
+                scores[found] = score
+        best = min(scores, key=scores.get)
+        own = scores[support[:, k].tobytes()]
+        chosen_score[k], best_score[k] = own, scores[best]
+        size = int(np.frombuffer(best, dtype=bool).sum())
+        explained = scores[best] - penalty * size <= NOISE_EXPLAINS * rows
+        if explained and own - scores[best] > margin:
+            support[:, k] = np.frombuffer(best, dtype=bool)
+            switched[k] = True
+    return Rescored(support, switched, chosen_score, best_score, counts)
+
+
+def rescore_weak(
+    kept: Problem, design, selection, fitted: Fitted, noise: RowNoise, *, method, solver, options
+) -> tuple[Fitted, Rescored]:
+    """:func:`rescore_supports` on the weak form's kept rows (``design``: the standardised
+    library the selection saw; ``selection`` its
+    :class:`~robust_sindy.selection.criteria.Selection`), the replaced equations refitted
+    by Huber without penalty on their new support (user units, as ``fitted``)."""
+    scaler = kept.scaler
+    chosen = fitted.coef * scaler.theta_scale[:, None] / scaler.y_scale[None, :]
+    out = rescore_supports(
+        design, kept.y_s, chosen, (selection.candidates, selection.subsets), noise,
+        MIN_BIC_MARGIN,
+    )  # fmt: skip
+    if not out.switched.any():
+        return fitted, out
+    method = method if method in ("admm", "cvxpy") else "admm"
+    solver = solver if method == "cvxpy" else None
+    delta = np.broadcast_to(np.asarray(fitted.result.delta, float), (kept.y.shape[1],))
+    coef = fitted.coef.copy()
+    for k in np.flatnonzero(out.switched):
+        coef[:, k] = refit_column(
+            kept.theta, kept.y[:, k], out.support[:, k], delta[k], method, solver, options
+        )
+    return Fitted(fitted.result, coef), out

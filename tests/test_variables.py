@@ -1,0 +1,142 @@
+"""The weak form's candidates scored under the noise their own terms carry
+(robust_sindy.selection.variables)."""
+
+import numpy as np
+import scipy.integrate
+import scipy.sparse
+
+from robust_sindy.selection.bias import LibraryNoise
+from robust_sindy.selection.variables import RowNoise, gls_score, rescore_supports
+
+RATE = 20.0  # x0' = RATE (x1 - x0): x0 follows x1 closely, a small difference of large terms
+
+
+def _follower(m=2000, dt=0.01):
+    def rhs(t, v):
+        drive = np.sin(t) + 0.5 * np.sin(2.3 * t)
+        return [RATE * (drive - v[0])]
+
+    t = dt * np.arange(m + 500)
+    sol = scipy.integrate.solve_ivp(rhs, (0, t[-1]), [0.0], t_eval=t, rtol=1e-11, atol=1e-12)
+    x0 = sol.y[0][500:]
+    x1 = np.sin(t[500:]) + 0.5 * np.sin(2.3 * t[500:])
+    return np.column_stack([x0, x1]), dt
+
+
+def _test_functions(m, dt, half=25, step=5, power=4):
+    """Weights and slopes (rows x samples) of test functions (1 - s^2)^power."""
+    centres = np.arange(half, m - half, step)
+    w = np.zeros((centres.size, m))
+    s = np.zeros_like(w)
+    for r, c in enumerate(centres):
+        i = np.arange(c - half, c + half + 1)
+        u = (i - c) / half
+        w[r, i] = (1 - u**2) ** power * dt
+        s[r, i] = -2 * power * u * (1 - u**2) ** (power - 1) / (half * dt) * dt
+    return scipy.sparse.csr_array(w), scipy.sparse.csr_array(s)
+
+
+def _rows(seed, level=0.01):
+    x, dt = _follower()
+    sigma = level * np.sqrt(np.mean(x**2, axis=0))
+    noisy = x + sigma * np.random.default_rng(seed).normal(size=x.shape)
+    w, s = _test_functions(x.shape[0], dt)
+    g = w @ noisy  # the library is the states themselves: first order is exact
+    b = -(s @ noisy[:, 0])
+    ones = np.ones((x.shape[0], 1))
+    noise = RowNoise(w, s, LibraryNoise(2, [[0], [1]], [sigma[0] * ones, sigma[1] * ones]), sigma)
+    return g, b, noise
+
+
+def test_the_true_support_has_the_chi_square_of_its_rows():
+    """With the noise its own (large) coefficients carry counted, the residuals of the
+    true model have chi-square about the number of rows (mean over seeds, within 15 %),
+    and a support without one of its terms is far beyond it in every seed."""
+    ratios, missing = [], []
+    for seed in range(6):
+        g, b, noise = _rows(seed)
+        chi2, xi = gls_score(g, b, np.array([True, True]), np.array([-RATE, RATE]), noise, 0)
+        ratios.append(chi2 / (g.shape[0] - 2))
+        assert np.allclose(xi, [-RATE, RATE], rtol=0.1)
+        short, _ = gls_score(g, b, np.array([False, True]), np.array([0.0, 1.0]), noise, 0)
+        missing.append(short / g.shape[0])
+    assert 0.85 < np.mean(ratios) < 1.15
+    assert min(missing) > 3.0
+
+
+def test_least_squares_residuals_read_the_columns_noise_as_the_models():
+    """The premise: the true model's residual variance is many times the target's own
+    noise (the columns' noise times coefficients of 20), so any criterion that reads
+    all candidates' residuals on one scale sees the true model as a poor fit."""
+    g, b, noise = _rows(0)
+    r = b - g @ np.array([-RATE, RATE])
+    own = np.asarray((noise.slopes @ noise.slopes.T).diagonal()) * noise.target[0] ** 2
+    assert np.mean(r**2) > 5 * np.mean(own)
+
+
+def test_rescoring_replaces_a_support_only_by_a_clearly_better_one():
+    g, b, noise = _rows(1)
+    y = b[:, None]
+    # Candidates: the second term alone (the chosen one), both terms.
+    pool = np.array([[[0.0], [1.0]], [[-RATE], [RATE]]])
+    out = rescore_supports(g, y, np.array([[0.0], [1.0]]), [pool], noise, margin=6.0)
+    assert out.switched.tolist() == [True]
+    assert out.support[:, 0].tolist() == [True, True]
+    assert out.chosen_score[0] - out.best_score[0] > 6.0
+    # The true support chosen: nothing better to replace it with.
+    stay = rescore_supports(g, y, np.array([[-RATE], [RATE]]), [pool], noise, margin=6.0)
+    assert stay.switched.tolist() == [False]
+
+
+def test_rescoring_keeps_the_support_where_the_noise_does_not_explain_the_residuals():
+    """States' noise far below what the residuals hold (quadrature error, a model the
+    library misses): the score would favour every term, and it is not used."""
+    g, b, noise = _rows(2)
+    tiny = RowNoise(noise.weights, noise.slopes,
+                    LibraryNoise(2, noise.columns.cols, [v * 1e-3 for v in noise.columns.values]),
+                    noise.target * 1e-3)  # fmt: skip
+    y = b[:, None]
+    pool = np.array([[[0.0], [1.0]], [[-RATE], [RATE]]])
+    out = rescore_supports(g, y, np.array([[0.0], [1.0]]), [pool], tiny, margin=6.0)
+    assert out.switched.tolist() == [False]
+    assert out.best_score[0] > 2.0 * g.shape[0]
+
+
+def test_the_diagnostics_say_which_equations_were_rescored():
+    from robust_sindy import HuberSINDy, PolynomialLibrary
+
+    t = 0.02 * np.arange(1500)
+    x = np.column_stack([np.sin(t), np.cos(t)]) + 0.01 * np.random.default_rng(0).normal(
+        size=(t.size, 2)
+    )
+    weak = HuberSINDy(library=PolynomialLibrary(degree=2), formulation="weak").fit(x, t)
+    assert set(weak.diagnostics_.errors_in_variables.tolist()) <= {0, 1}
+    assert "supports replaced under the noise their terms carry" in str(weak.diagnostics_)
+    strong = HuberSINDy(library=PolynomialLibrary(degree=2), formulation="strong").fit(x, t)
+    assert strong.diagnostics_.errors_in_variables.tolist() == [-1, -1]
+    assert "(weak form): not scored" in str(strong.diagnostics_)
+
+
+def test_the_band_is_the_covariance_of_the_residual_noise():
+    """The banded covariance (formed from products of the test functions) equals
+    ``D D^T`` of the residual's noise factor, on and off the equation's own state."""
+    noise = _rows(3)[2]
+    rng = np.random.default_rng(0)
+    for k in (0, 1):
+        xi = rng.normal(scale=10.0, size=2)
+        full = noise.covariance(xi, k).toarray()
+        band = noise.band(xi, k)
+        rows = full.shape[0]
+        for d in range(band.shape[0]):
+            assert np.allclose(band[d, : rows - d], np.diag(full, -d), rtol=1e-12, atol=0)
+        assert not np.any(np.tril(full, -band.shape[0]))  # nothing outside the band
+
+
+def test_the_search_reaches_a_support_no_candidate_holds():
+    """The selection proposed only the second term: the stepwise search under the
+    same score finds the true pair."""
+    g, b, noise = _rows(4)
+    pool = np.array([[[0.0], [1.0]]])
+    out = rescore_supports(g, b[:, None], np.array([[0.0], [1.0]]), [pool], noise, margin=6.0)
+    assert out.switched.tolist() == [True]
+    assert out.support[:, 0].tolist() == [True, True]
