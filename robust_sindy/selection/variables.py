@@ -44,7 +44,7 @@ import scipy.linalg
 import scipy.sparse
 
 from .bias import LibraryNoise
-from .choice import Fitted
+from .choice import Fitted, huber_method
 from .criteria import MIN_BIC_MARGIN
 from .problem import Problem
 from .refit import refit_column
@@ -108,14 +108,22 @@ class RowNoise:
 
         return cls(stacked(weak.weights), stacked(weak.slopes), columns, np.asarray(target))
 
+    def gradients(self, xi: np.ndarray) -> list:
+        """Per state ``l``, ``g_l`` (m,): the noise that state's noise puts, through the
+        candidate ``xi`` (p,), in the model's value at every sample (None for a state no
+        column depends on)."""
+        return [
+            values @ xi[cols] if cols.size else None
+            for cols, values in zip(self.columns.cols, self.columns.values, strict=True)
+        ]
+
     def factor(self, xi: np.ndarray, k: int) -> scipy.sparse.csr_array:
         """``D(xi)`` (K, m n) for equation ``k``: the residual's noise is ``D e`` for
         independent ``e`` of unit variance, one block of samples per state."""
         blocks = []
-        for state, (cols, values) in enumerate(
-            zip(self.columns.cols, self.columns.values, strict=True)
-        ):
-            g = values @ xi[cols] if cols.size else np.zeros(values.shape[0])
+        for state, g in enumerate(self.gradients(xi)):
+            if g is None:
+                g = np.zeros(self.weights.shape[1])
             block = -(self.weights @ scipy.sparse.diags_array(g))
             if state == k:
                 block = block - self.target[k] * self.slopes
@@ -138,11 +146,8 @@ class RowNoise:
         ww, ws, ss, at = self._products
         q = np.zeros(self.weights.shape[1])
         own = np.zeros_like(q)
-        for state, (cols, values) in enumerate(
-            zip(self.columns.cols, self.columns.values, strict=True)
-        ):
-            if cols.size:
-                g = values @ xi[cols]
+        for state, g in enumerate(self.gradients(xi)):
+            if g is not None:
                 q += g * g
                 if state == k:
                     own = g
@@ -332,7 +337,8 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
         # Local searches from the best candidate, from the chosen support and from the
         # empty model: the path and the subsets were ranked by a criterion that reads
         # the columns' noise as signal, and may not hold the support this score prefers.
-        for start in (best, support[:, k].tobytes(), np.zeros(g.shape[1], dtype=bool).tobytes()):
+        empty = np.zeros(g.shape[1], dtype=bool).tobytes()
+        for start in dict.fromkeys((best, support[:, k].tobytes(), empty)):
             found, score = _stepwise(
                 g, y[:, k], start, scores.get(start, np.inf), noise, k, penalty, memo
             )
@@ -356,15 +362,14 @@ def rescore_weak(
     library the selection saw; ``selection`` its
     :class:`~robust_sindy.selection.criteria.Selection`), the replaced equations refitted
     by Huber without penalty on their new support (user units, as ``fitted``)."""
-    scaler = kept.scaler
-    chosen = fitted.coef * scaler.theta_scale[:, None] / scaler.y_scale[None, :]
+    chosen = kept.scaler.coef_to_standard(fitted.coef)
     out = rescore_supports(
         design, kept.y_s, chosen, (selection.candidates, selection.subsets), noise,
         MIN_BIC_MARGIN,
     )  # fmt: skip
     if not out.switched.any():
         return fitted, out
-    method = method if method in ("admm", "cvxpy") else "admm"
+    method = huber_method(method)
     solver = solver if method == "cvxpy" else None
     delta = np.broadcast_to(np.asarray(fitted.result.delta, float), (kept.y.shape[1],))
     coef = fitted.coef.copy()
