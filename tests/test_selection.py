@@ -144,7 +144,9 @@ def test_a_walk_hands_the_points_it_cannot_certify_over_and_goes_on(monkeypatch)
     monkeypatch.setattr(driver, "KERNEL_STEPS", 2)  # most points need more steps than that
     short = path(theta, y, delta, reference.lams)
     info = walks[0][2]
-    assert 0 < info["handed_over"] < reference.lams.shape[0] * y.shape[1]
+    # Every point the short walk did not certify was solved from the previous point
+    # by the NumPy iteration or as a cold fit.
+    assert 0 < info["handed_over"] + info["from_previous"].sum() < reference.lams.size
     assert short.converged.all()
     rel = np.abs(short.objective - reference.objective) / np.abs(reference.objective)
     assert rel.max() <= 1e-10
@@ -176,6 +178,54 @@ def test_a_walk_solves_the_points_it_hands_over_as_cold_fits(monkeypatch):
     walked = path(theta, y, auto_delta(theta, y))
     assert walks[0][2]["handed_over"] > 0 and not admm_runs
     assert walked.converged.all()
+
+
+def _weak_lorenz_path_problem(level=0.01, seed=0):
+    """The weak-form rows of a noisy Lorenz record (degree-4 library) and the delta
+    and lam grid the estimator walked them with."""
+    from robust_sindy.solvers import driver
+
+    data = Lorenz().generate()
+    rng = np.random.default_rng(seed)
+    x = data.x + level * np.sqrt(np.mean(data.x**2, axis=0)) * rng.normal(size=data.x.shape)
+    calls = []
+    original = driver.solve_path
+    try:
+        driver.solve_path = lambda th, y, d, g, **k: (
+            calls.append((th, y, d, g)) or original(th, y, d, g, **k)
+        )
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            HuberSINDy(library=PolynomialLibrary(degree=4), formulation="weak").fit(x, data.t)
+    finally:
+        driver.solve_path = original
+    return calls[0]
+
+
+@pytest.mark.parametrize("seed", [0, 1])
+def test_a_walk_retries_a_point_from_the_previous_one_with_the_numpy_iteration(seed, monkeypatch):
+    # On weak-form rows the compiled walk stops at many points after 20 steps without
+    # halving its violation; the NumPy iteration from the previous point certifies
+    # them (a cold fit took hundreds of steps and the ADMM there). The points it
+    # certifies are the optima of cold fits.
+    from robust_sindy.solvers import _kernel, driver
+
+    if not _kernel.usable():
+        pytest.skip("numba is not installed")
+    theta, y, delta, grid = _weak_lorenz_path_problem(seed=seed)
+    walks = []
+    original = driver.solve_path
+    monkeypatch.setattr(
+        driver, "solve_path", lambda *a, **k: walks.append(original(*a, **k)) or walks[-1]
+    )
+    walked = path(theta, y, delta, grid)
+    assert walked.converged.all()
+    points = np.argwhere(walks[0][2]["from_previous"])
+    assert len(points) >= 3, "the walk never needed the NumPy iteration here"
+    for i, k in points[:: max(1, len(points) // 3)][:3]:
+        cold = rs.fit(theta, y[:, [k]], delta=delta[k], lam=walked.lams[i, k])
+        rel = abs(walked.objective[i, k] - cold.objective[0]) / abs(cold.objective[0])
+        assert rel <= 1e-10
 
 
 def test_path_cold_option_and_cvxpy_agree():

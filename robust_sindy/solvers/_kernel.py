@@ -73,7 +73,7 @@ KERNEL_STATUS = {
 #: make the block singular (the NumPy iteration's eigenvalue cut is the same 1e-11).
 _PIVOT_CUT = 1e-11
 _SEARCHES = 60  # regula falsi iterations of the line search
-_STALL = 20  # steps without halving the KKT violation after which the kernel gives up
+STALL = 20  # steps without halving the KKT violation after which the kernel gives up
 _RELAX = 0.1  # the damping's decrease after a full step (as in the NumPy iteration)
 
 
@@ -387,8 +387,8 @@ def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps
             break
         if viol < 0.5 * ref_viol:
             ref_viol, ref_step = viol, step
-        if step == max_steps or step - ref_step >= _STALL:
-            status = 1  # the budget, or no halving of the violation in _STALL steps
+        if step == max_steps or step - ref_step >= STALL:
+            status = 1  # the budget, or no halving of the violation in STALL steps
             break
         # Inlier Gram matrix: updated by the rows that changed sides, else afresh.
         updated = False

@@ -36,7 +36,15 @@ from .problem import (
     target_scale,
 )
 
-__all__ = ["FIRST_STEPS", "KERNEL_STEPS", "USE_KERNEL", "solve", "solve_path", "use_kernel"]
+__all__ = [
+    "FIRST_STEPS",
+    "KERNEL_STEPS",
+    "USE_KERNEL",
+    "WARM_STEPS",
+    "solve",
+    "solve_path",
+    "use_kernel",
+]
 
 FIRST_STEPS = 25  # the fast path's own Newton run may take 25x newton_steps
 
@@ -44,6 +52,11 @@ FIRST_STEPS = 25  # the fast path's own Newton run may take 25x newton_steps
 #: Whether the compiled iteration (:mod:`robust_sindy.solvers._kernel`) takes the steps
 #: first, and its step budget per column.
 USE_KERNEL, KERNEL_STEPS = True, 50
+
+#: Step budget of the NumPy iteration from the previous point for a path point the
+#: compiled iteration could not certify; it also stops where its violation has not
+#: halved in ``_kernel.STALL`` steps (then a cold fit).
+WARM_STEPS = 100
 
 
 def use_kernel(A, columns: int) -> bool:
@@ -227,7 +240,9 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
     grid, every point starting from the last one's solution, the residuals and gradient
     of its last pass and its inlier Gram matrix (a warm start is otherwise one pass and
     one Gram matrix more per point).  A point the kernel cannot certify is tried again
-    from the previous point with a fresh Gram matrix, else solved by
+    from the previous point with a fresh Gram matrix, then (unless the previous point
+    has no more samples inside ``delta`` than nonzero coefficients) by the NumPy
+    iteration from the previous point on a budget of ``WARM_STEPS``, else solved by
     :func:`solve` as a cold fit (least-squares start; NumPy iteration, then
     ADMM), and the kernel goes on from there.  Takes the options of :func:`solve` (not
     ``warm_start``).
@@ -235,8 +250,9 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
     Returns ``(coef, converged, info)``: ``coef`` (L, p, n) in the caller's units,
     ``converged`` (L, n) the solvers' own verdicts (the caller certifies), ``info``
     with ``newton_steps`` (L, n), ``passes`` over ``Theta``, ``retried`` (points the
-    kernel certified once more from the previous point) and ``handed_over`` (points
-    solved by :func:`solve` after the first); or ``None``
+    kernel certified once more from the previous point), ``from_previous`` (L, n), the
+    points the NumPy iteration certified from the previous point, and ``handed_over``
+    (points solved by :func:`solve` after the first); or ``None``
     where the compiled iteration does not apply (``polish=False``, a problem too large
     for it, or Numba unavailable): then the caller solves point by point.
     """
@@ -256,6 +272,7 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
     coef = np.zeros((L, p, n))
     converged = np.zeros((L, n), dtype=bool)
     steps = np.zeros((L, n), dtype=int)
+    from_previous = np.zeros((L, n), dtype=bool)
     out = solve(theta, y, delta, grid[0], prepared=prepared, **opts)
     coef[0], converged[0], steps[0] = out.coef, out.converged, out.info["newton_steps"]
     passes, handed_over, retried = out.info["passes"], 0, 0
@@ -298,25 +315,48 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
             # (least-squares start): from the previous point the NumPy iteration can
             # take hundreds of steps on a nearly least-absolute-deviation piece.
             i = int(stop[a])
+            previous = coef[i - 1][nz, k][:, None] * (scale / c[k])[:, None]
             again = _kernel.newton_kernel(
                 A.theta, A.scale, prepared.G, ys[:, [k]], ds[[k]], lam_s[i][:, [k]],
-                coef[i - 1][nz, k][:, None] * (scale / c[k])[:, None], prepared.a_norms,
-                prepared.lipschitz, opts["tol"], budget,
+                previous, prepared.a_norms, prepared.lipschitz, opts["tol"], budget,
             )  # fmt: skip
             if again is not None:
                 x_again, status_again, steps_again, passes_again = again
                 passes += passes_again
+                steps[i, k] = kernel_steps[i, a] + steps_again[0]
                 if status_again[0] == 0:
                     coef[i, nz, k] = x_again[:, 0] * c[k] / scale
                     converged[i, k] = True
-                    steps[i, k] = kernel_steps[i, a] + steps_again[0]
                     x[:, k] = x_again[:, 0]
                     first[k] = i + 1
                     retried += 1
                     continue
+            # Then, unless the previous point is a least-absolute-deviation vertex (no
+            # more samples inside delta than nonzero coefficients: the support's inlier
+            # system is singular, and from there the NumPy iteration crawled for
+            # hundreds of steps where a cold fit took a few dozen), the NumPy iteration
+            # from the previous point on a short budget: it has eigenvalue cuts and
+            # steps from the rows, which the kernel lacks (on the weak form's rows the
+            # kernel stopped after 20 steps without halving its violation where this
+            # certified in 4 to 40). Else, or if it fails, a cold fit.
+            inside = np.abs(ys[:, k] - A @ previous[:, 0]) <= ds[k]
+            passes += 1
+            if np.count_nonzero(inside) > np.count_nonzero(previous):
+                run = newton(
+                    prepared, ys[:, [k]], ds[[k]], lam_s[i][:, [k]], previous,
+                    max_steps=WARM_STEPS, tol=opts["tol"], patience=_kernel.STALL,
+                )  # fmt: skip
+                passes += run.passes
+                steps[i, k] += run.steps[0]
+                if run.certified[0]:
+                    coef[i, nz, k] = run.x[:, 0] * c[k] / scale
+                    converged[i, k] = from_previous[i, k] = True
+                    x[:, k] = run.x[:, 0]
+                    first[k] = i + 1
+                    continue
             one = solve(theta, y[:, [k]], delta[[k]], grid[i, [k]], prepared=prepared, **opts)
             coef[i, :, k], converged[i, k] = one.coef[:, 0], one.converged[0]
-            steps[i, k] = kernel_steps[i, a] + one.info["newton_steps"][0]
+            steps[i, k] += one.info["newton_steps"][0]
             passes += one.info["passes"]
             handed_over += 1
             x[:, k] = coef[i][nz, k] * scale / c[k]
@@ -325,6 +365,7 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
         "newton_steps": steps,
         "passes": passes,
         "retried": retried,
+        "from_previous": from_previous,
         "handed_over": handed_over,
     }
     return coef, converged, info

@@ -626,7 +626,9 @@ class NewtonRun:
     passes: int  # passes over A, all columns together
 
 
-def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) -> NewtonRun:
+def newton(
+    prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float, patience: int | None = None
+) -> NewtonRun:
     """Run the batched Newton method on scaled columns.
 
     ``y`` (m, k), ``delta`` (k,), ``lam`` (p, k) and the start ``x`` (p, k) are in the
@@ -637,6 +639,8 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
     its objective no longer changes (1e-12 relative), which is where rounding in an
     ill-conditioned library ends what any method can certify.  The returned point is
     the best certified one (KKT <= ``tol``) or, for uncertified columns, the last.
+    With ``patience``, a column also stops once its violation has not halved in that
+    many steps (a bounded attempt, as the compiled iteration makes).
     """
     A, G, norms = prepared.A, prepared.G, prepared.a_norms
     T = 1.0 / norms**2
@@ -683,6 +687,8 @@ def newton(prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float) 
         stalled[act] = stuck & ~np.isfinite(best_kkt[act])
         settled = np.isfinite(best_kkt[act]) & (step - ref_step[act] >= _CERTIFIED_STEPS)
         go = (kkt > 0.1 * tol) & ~stuck & ~settled
+        if patience is not None:
+            go &= step - ref_step[act] < patience
         if step == max_steps or not go.any():
             break
         if not go.all():
