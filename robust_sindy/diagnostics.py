@@ -211,7 +211,10 @@ class Diagnostics:
         data do not strongly prefer the chosen model.  A close candidate that only adds
         a term to the chosen ones, which keep their values, is not warned about on its
         own: whether terms are missing is what ``below_floor``, ``bias_ratio`` and
-        ``pruned`` report.
+        ``pruned`` report.  For an equation whose support the weak form's rescoring
+        replaced (``errors_in_variables``), the margin is that of the rescoring's score
+        (chi-square under the noise the terms carry plus ``log(rows)`` per term) over
+        the supports it fitted.
     subset_size : ndarray of int (n,)
         Besides the ``lam`` path's, the criterion compares the best supports of every
         size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
@@ -743,7 +746,8 @@ RULES: tuple[Rule, ...] = (
         lambda d, close: (
             f"equations {close}: another model (without some of the reported terms, or "
             "with one of their coefficients changed by more than half) scored within "
-            f"{MIN_BIC_MARGIN:g} of the best candidate's BIC (differences "
+            f"{MIN_BIC_MARGIN:g} of the best candidate's {_runner_up_score(d, close)} "
+            "(differences "
             + ", ".join(f"{v:.1f}" for v in d.rival_margin[close])
             + "): the data do not strongly prefer the selected terms; compare the "
             "candidates (selection_.candidates and selection_.scores on the path, "
@@ -752,6 +756,20 @@ RULES: tuple[Rule, ...] = (
         ),
     ),
 )
+
+
+def _runner_up_score(d, close) -> str:
+    """The score the close-runner-up warning's margins are on: the BIC, or for the
+    equations the weak form replaced, the score under the noise their terms carry."""
+    replaced = [
+        k for k in close if k < d.errors_in_variables.size and d.errors_in_variables[k] == 1
+    ]
+    if not replaced:
+        return "BIC"
+    return (
+        f"score (BIC; for equations {replaced}, replaced under the noise their terms "
+        "carry, that score)"
+    )
 
 
 def kind_of(caught: warnings.WarningMessage) -> str:
@@ -814,6 +832,20 @@ def _condition_numbers(theta_kept, coef) -> np.ndarray:
             a = theta_kept[:, keep]
             cond[k] = np.linalg.cond(a / np.maximum(np.linalg.norm(a, axis=0), 1e-300))
     return cond
+
+
+def _rival_margin(selection, rescored, standard, n) -> np.ndarray:
+    """The score margin to the next other model (``Diagnostics.rival_margin``): the
+    selection's BIC, except for the equations whose support the weak form's rescoring
+    replaced, where that score decided (:meth:`~robust_sindy.selection.variables.
+    Rescored.rival_margin`): the BIC's own choice, which it beat by more than the margin,
+    would otherwise read as a runner-up at a difference of zero."""
+    if selection is None or selection.criterion != "bic":
+        return np.full(n, np.nan)
+    margin = selection.rival_margin_to(standard)
+    if rescored is not None and rescored.switched.any():
+        margin = np.where(rescored.switched, rescored.rival_margin(standard), margin)
+    return margin
 
 
 def diagnose(
@@ -941,11 +973,7 @@ def diagnose(
             if selection is not None and selection.criterion == "bic"
             else np.full(n, np.nan)
         ),
-        rival_margin=(
-            selection.rival_margin_to(standard)
-            if selection is not None and selection.criterion == "bic"
-            else np.full(n, np.nan)
-        ),
+        rival_margin=_rival_margin(selection, rescored, standard, n),
         subset_size=(
             selection.subset_size.copy() if selection is not None else np.zeros(n, dtype=int)
         ),

@@ -88,6 +88,27 @@ def test_rescoring_replaces_a_support_only_by_a_clearly_better_one():
     assert stay.switched.tolist() == [False]
 
 
+def test_a_replaced_equation_measures_its_runner_up_by_the_rescoring_score():
+    """The margin to the next other model of a replaced equation is read from the
+    supports the rescoring fitted (the selection's BIC chose the support it replaced):
+    positive, at most the chosen support's own deficit; a support that keeps the
+    reported terms but changes a coefficient by more than half is another model."""
+    for seed in (1, 4):
+        g, b, noise = _rows(seed)
+        pool = np.array([[[0.0], [1.0]], [[-RATE], [RATE]]])
+        out = rescore_supports(g, b[:, None], np.array([[0.0], [1.0]]), [pool], noise, 6.0)
+        assert out.switched.tolist() == [True]
+        reported = out.scored[0][2][np.argmin(out.scored[0][1])][:, None]
+        assert np.array_equal(reported[:, 0] != 0, [True, True])
+        margin = out.rival_margin(reported)[0]
+        assert 0.0 < margin <= out.chosen_score[0] - out.best_score[0]
+        # Reported as the second term alone, with its coefficient near 1: the best
+        # support (both terms, that coefficient near RATE) is another model.
+        assert out.rival_margin(np.array([[0.0], [1.0]]))[0] == 0.0
+    stay = rescore_supports(g, b[:, None], np.array([[-RATE], [RATE]]), [pool], noise, 6.0)
+    assert np.isnan(stay.rival_margin(np.array([[-RATE], [RATE]]))[0])
+
+
 def test_rescoring_keeps_the_support_where_the_noise_does_not_explain_the_residuals():
     """States' noise far below what the residuals hold (quadrature error, a model the
     library misses): the score would favour every term, and it is not used."""
@@ -140,3 +161,32 @@ def test_the_search_reaches_a_support_no_candidate_holds():
     out = rescore_supports(g, b[:, None], np.array([[0.0], [1.0]]), [pool], noise, margin=6.0)
     assert out.switched.tolist() == [True]
     assert out.support[:, 0].tolist() == [True, True]
+
+
+def test_the_diagnostics_take_a_replaced_equations_margin_from_the_rescoring():
+    from types import SimpleNamespace
+
+    from robust_sindy.diagnostics import _rival_margin
+
+    g, b, noise = _rows(1)
+    y = np.column_stack([b, b])
+    pool = np.array([[[0.0, -RATE], [1.0, RATE]], [[-RATE, -RATE], [RATE, RATE]]])
+    out = rescore_supports(g, y, np.array([[0.0, -RATE], [1.0, RATE]]), [pool], noise, 6.0)
+    assert out.switched.tolist() == [True, False]
+    bic = np.array([0.0, 2.5])  # the BIC's own choice reads as a runner-up at zero
+    selection = SimpleNamespace(criterion="bic", rival_margin_to=lambda reference: bic)
+    reported = np.array([[-RATE, -RATE], [RATE, RATE]])
+    margin = _rival_margin(selection, out, reported, 2)
+    assert margin[0] == out.rival_margin(reported)[0] > 6.0
+    assert margin[1] == 2.5  # not replaced: the BIC's margin stands
+    assert np.isnan(_rival_margin(None, out, reported, 2)).all()
+
+
+def test_the_runner_up_warning_names_the_score_its_margins_are_on():
+    from types import SimpleNamespace
+
+    from robust_sindy.diagnostics import _runner_up_score
+
+    d = SimpleNamespace(errors_in_variables=np.array([0, 1, -1]))
+    assert _runner_up_score(d, [0, 2]) == "BIC"
+    assert "for equations [1], replaced under the noise" in _runner_up_score(d, [0, 1])

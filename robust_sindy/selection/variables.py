@@ -45,7 +45,7 @@ import scipy.sparse
 
 from .bias import LibraryNoise
 from .choice import Fitted, huber_method
-from .criteria import MIN_BIC_MARGIN
+from .criteria import MIN_BIC_MARGIN, _rival
 from .problem import Problem
 from .refit import refit_column
 
@@ -296,6 +296,9 @@ class Rescored:
         (``nan`` for equations not rescored).
     candidates : ndarray of int (n,)
         The distinct supports scored per equation.
+    scored : list
+        Per equation, every support fitted (the candidates and the searches' steps):
+        ``(supports (S, p) bool, scores (S,), coefficients (S, p))``, standardised.
     """
 
     support: np.ndarray
@@ -303,6 +306,27 @@ class Rescored:
     chosen_score: np.ndarray
     best_score: np.ndarray
     candidates: np.ndarray
+    scored: list = field(default_factory=list, repr=False)
+
+    def rival_margin(self, reference: np.ndarray) -> np.ndarray:
+        """Per replaced equation, the score of the best support fitted that is another
+        model than ``reference`` (p, n, standardised: the model finally reported; it
+        leaves out one of its terms or changes one of its coefficients by more than
+        half, as :func:`~robust_sindy.selection.criteria.score_margin` counts rivals)
+        minus the best score, ``inf`` where none is; ``nan`` for the equations not
+        replaced, whose choice the selection's BIC made."""
+        out = np.full(self.switched.shape, np.nan)
+        for k in np.flatnonzero(self.switched):
+            supports, scores, coefs = self.scored[k]
+            ref = reference[:, k]
+            others = [
+                i for i in range(scores.size)
+                if np.isfinite(scores[i])
+                and not np.array_equal(supports[i], ref != 0)
+                and _rival(coefs[i], ref)
+            ]  # fmt: skip
+            out[k] = np.min(scores[others]) - self.best_score[k] if others else np.inf
+        return out
 
 
 def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Rescored:
@@ -320,6 +344,7 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
     chosen_score = np.full(n, np.nan)
     best_score = np.full(n, np.nan)
     counts = np.zeros(n, dtype=int)
+    scored = []
     for k in range(n):
         starts = {support[:, k].tobytes(): chosen[:, k]}
         for pool in pools:
@@ -352,7 +377,11 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
         if explained and own - scores[best] > margin:
             support[:, k] = np.frombuffer(best, dtype=bool)
             switched[k] = True
-    return Rescored(support, switched, chosen_score, best_score, counts)
+        fitted = np.array([np.frombuffer(key, dtype=bool) for key in memo])
+        chi2 = np.array([chi2 for chi2, _ in memo.values()])
+        coefs = np.array([xi for _, xi in memo.values()])
+        scored.append((fitted, chi2 + penalty * fitted.sum(axis=1), coefs))
+    return Rescored(support, switched, chosen_score, best_score, counts, scored)
 
 
 def rescore_weak(
