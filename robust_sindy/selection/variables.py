@@ -45,7 +45,7 @@ import scipy.sparse
 
 from .bias import LibraryNoise
 from .choice import Fitted, huber_method
-from .criteria import MIN_BIC_MARGIN, _rival
+from .criteria import MIN_BIC_MARGIN, is_rival
 from .problem import Problem
 from .refit import refit_column
 
@@ -323,7 +323,7 @@ class Rescored:
                 i for i in range(scores.size)
                 if np.isfinite(scores[i])
                 and not np.array_equal(supports[i], ref != 0)
-                and _rival(coefs[i], ref)
+                and is_rival(coefs[i], ref)
             ]  # fmt: skip
             out[k] = np.min(scores[others]) - self.best_score[k] if others else np.inf
         return out
