@@ -311,9 +311,7 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
                 first[k] = L
                 continue
             # Once more from the previous point with a fresh Gram matrix (the walk's
-            # updated one can lead a hard point astray), then as a cold fit
-            # (least-squares start): from the previous point the NumPy iteration can
-            # take hundreds of steps on a nearly least-absolute-deviation piece.
+            # updated one can lead a hard point astray).
             i = int(stop[a])
             previous = coef[i - 1][nz, k][:, None] * (scale / c[k])[:, None]
             again = _kernel.newton_kernel(
