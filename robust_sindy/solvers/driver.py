@@ -336,7 +336,7 @@ def solve_path(theta, y, delta, grid, *, prepared: Prepared, **options):
             # from the previous point on a short budget: it has eigenvalue cuts and
             # steps from the rows, which the kernel lacks (on the weak form's rows the
             # kernel stopped after 20 steps without halving its violation where this
-            # certified in 4 to 60). Else, or if it fails, a cold fit.
+            # certified in 1 to 50). Else, or if it fails, a cold fit.
             inside = np.abs(ys[:, k] - A @ previous[:, 0]) <= ds[k]
             passes += 1
             if np.count_nonzero(inside) > np.count_nonzero(previous):
