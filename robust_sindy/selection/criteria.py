@@ -26,7 +26,6 @@ __all__ = [
     "bic_terms",
     "blocked_folds",
     "information_criterion",
-    "is_rival",
     "score_margin",
     "select",
 ]
@@ -374,7 +373,7 @@ def _loss_floor(a, y, weights, delta, residuals=None, basis=None) -> float:
 RIVAL_CHANGE = 0.5
 
 
-def is_rival(candidate, chosen_coef) -> bool:
+def _rival(candidate, chosen_coef) -> bool:
     """Whether ``candidate`` (p,) leaves out a term of ``chosen_coef`` (p,) or changes
     one of its coefficients by more than :data:`RIVAL_CHANGE` of it."""
     on = chosen_coef != 0
@@ -413,7 +412,7 @@ def score_margin(scores, candidates, index, rivals: bool = False, reference=None
             i for i in range(L)
             if np.isfinite(scores[i, k])
             and not np.array_equal(candidates[i, :, k] != 0, chosen)
-            and (not rivals or is_rival(candidates[i, :, k], chosen_coef))
+            and (not rivals or _rival(candidates[i, :, k], chosen_coef))
         ]  # fmt: skip
         if other:
             out[k] = np.min(scores[other, k]) - scores[index[k], k]

@@ -45,7 +45,7 @@ import scipy.sparse
 
 from .bias import LibraryNoise
 from .choice import Fitted, huber_method
-from .criteria import MIN_BIC_MARGIN, is_rival
+from .criteria import MIN_BIC_MARGIN, score_margin
 from .problem import Problem
 from .refit import refit_column
 
@@ -108,22 +108,12 @@ class RowNoise:
 
         return cls(stacked(weak.weights), stacked(weak.slopes), columns, np.asarray(target))
 
-    def gradients(self, xi: np.ndarray) -> list:
-        """Per state ``l``, ``g_l`` (m,): the noise that state's noise puts, through the
-        candidate ``xi`` (p,), in the model's value at every sample (None for a state no
-        column depends on)."""
-        return [
-            values @ xi[cols] if cols.size else None
-            for cols, values in zip(self.columns.cols, self.columns.values, strict=True)
-        ]
-
     def factor(self, xi: np.ndarray, k: int) -> scipy.sparse.csr_array:
         """``D(xi)`` (K, m n) for equation ``k``: the residual's noise is ``D e`` for
         independent ``e`` of unit variance, one block of samples per state."""
         blocks = []
-        for state, g in enumerate(self.gradients(xi)):
-            if g is None:
-                g = np.zeros(self.weights.shape[1])
+        # Per state l, g_l (m,): the noise it puts, through xi, in the model's value.
+        for state, g in enumerate(self.columns.per_state(xi)):
             block = -(self.weights @ scipy.sparse.diags_array(g))
             if state == k:
                 block = block - self.target[k] * self.slopes
@@ -146,11 +136,10 @@ class RowNoise:
         ww, ws, ss, at = self._products
         q = np.zeros(self.weights.shape[1])
         own = np.zeros_like(q)
-        for state, g in enumerate(self.gradients(xi)):
-            if g is not None:
-                q += g * g
-                if state == k:
-                    own = g
+        for state, g in enumerate(self.columns.per_state(xi)):
+            q += g * g
+            if state == k:
+                own = g
         t = float(self.target[k])
         out = np.zeros(at[0])
         out[at[1]] = ww @ q + t * (ws @ own) + t * t * ss
@@ -318,14 +307,11 @@ class Rescored:
         out = np.full(self.switched.shape, np.nan)
         for k in np.flatnonzero(self.switched):
             supports, scores, coefs = self.scored[k]
-            ref = reference[:, k]
-            others = [
-                i for i in range(scores.size)
-                if np.isfinite(scores[i])
-                and not np.array_equal(supports[i], ref != 0)
-                and is_rival(coefs[i], ref)
-            ]  # fmt: skip
-            out[k] = np.min(scores[others]) - self.best_score[k] if others else np.inf
+            best = np.flatnonzero(np.all(supports == self.support[:, k], axis=1))
+            out[k] = score_margin(
+                scores[:, None], coefs[:, :, None], best[:1], rivals=True,
+                reference=reference[:, [k]],
+            )[0]  # fmt: skip
         return out
 
 
