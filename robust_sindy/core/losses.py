@@ -25,13 +25,14 @@ def huber_psi(a: np.ndarray, delta: float | np.ndarray) -> np.ndarray:
     return np.clip(a, -delta, delta)
 
 
-def huber(a: np.ndarray, delta: float | np.ndarray) -> np.ndarray:
+def huber(a: np.ndarray, delta: float | np.ndarray, *, psi: np.ndarray | None = None) -> np.ndarray:
     """Elementwise Huber loss ``H_delta(a)`` (``a**2 / 2`` when ``delta`` is inf).
 
     Written branch-free as ``c * (a - c / 2)`` with ``c = psi_delta(a)``, which is
-    exact in both branches and never forms ``inf - inf``.
+    exact in both branches and never forms ``inf - inf``; ``psi`` is
+    ``huber_psi(a, delta)`` when the caller has it already.
     """
-    c = huber_psi(a, delta)
+    c = huber_psi(a, delta) if psi is None else psi
     return c * (a - 0.5 * c)
 
 

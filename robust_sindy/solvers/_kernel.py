@@ -5,8 +5,8 @@
 pass over the rows gives the residuals, ``psi``, the gradient, the objective and the
 KKT violation together, the inlier Gram matrix is updated by the rows that changed
 sides (its support block factorised by Cholesky), and the step is the full Newton
-step when it passes the Armijo test, else the minimiser along the direction (regula
-falsi on the monotone, piecewise-linear slope of the convex piecewise-quadratic
+step when it passes the Armijo test, else the minimiser along the direction (Newton
+steps on the monotone, piecewise-linear slope of the convex piecewise-quadratic
 objective; also past the full step of a damped or reweighted direction whose slope is
 still negative there: on near-least-absolute-deviation pieces such a step can be orders
 of magnitude too short), with the NumPy iteration's Levenberg-Marquardt rule and its
@@ -72,7 +72,7 @@ KERNEL_STATUS = {
 #: Cholesky pivots below this fraction of the support block's largest diagonal entry
 #: make the block singular (the NumPy iteration's eigenvalue cut is the same 1e-11).
 _PIVOT_CUT = 1e-11
-_SEARCHES = 60  # regula falsi iterations of the line search
+_SEARCHES = 60  # iterations of the line search within its bracket
 STALL = 20  # steps without halving the KKT violation after which the kernel gives up
 _RELAX = 0.1  # the damping's decrease after a full step (as in the NumPy iteration)
 
@@ -100,48 +100,102 @@ def _huber(r, delta):
 
 @_jit
 def _slope(t, r, q, x, d, lam, delta):
-    """Right derivative of ``P(x + t d)`` (see ``newton.slope``)."""
+    """Right derivative of ``P(x + t d)`` (see ``newton.slope``) and its rate of change
+    on the piece at ``t`` (the squared images ``q_i^2`` of the residuals inside the
+    quadratic zone: the L1 terms are piecewise constant in slope)."""
     s = 0.0
     for j in range(x.shape[0]):
         xt = x[j] + t * d[j]
         sg = np.sign(xt) if xt != 0.0 else np.sign(d[j])
         s += lam[j] * sg * d[j]
+    c = 0.0
     for i in range(r.shape[0]):
         v = r[i] - t * q[i]
         if v > delta:
             v = delta
         elif v < -delta:
             v = -delta
+        else:
+            c += q[i] * q[i]
         s -= v * q[i]
-    return s
+    return s, c
+
+
+@_jit
+def _kink(x, d, a, b):
+    """The coefficient whose zero crossing ``t = -x_j / d_j`` lies strictly between ``a``
+    and ``b`` and nearest to ``a`` (-1 if none), and that ``t``."""
+    best, at = -1, np.nan
+    for j in range(x.shape[0]):
+        if x[j] == 0.0 or d[j] == 0.0 or (x[j] > 0.0) == (d[j] > 0.0):
+            continue
+        t = -x[j] / d[j]
+        if min(a, b) < t < max(a, b) and (best < 0 or abs(t - a) < abs(at - a)):
+            best, at = j, t
+    return best, at
 
 
 @_jit
 def _line_search(r, q, x, d, lam, delta, slope0, slope1):
     """Minimiser of the convex piecewise-quadratic ``P(x + t d)``, ``t > 0``, from its
     slope at 0 (``< 0``) and at 1 (NaN: not yet computed): a bracket by doubling from
-    ``t = 1``, then the Illinois variant of regula falsi on the slope, which is
-    piecewise linear and nondecreasing (exact once the bracket lies within one piece)."""
+    ``t = 1``, then, inside it, Newton steps on the slope, which is piecewise linear and
+    nondecreasing (a step from a point of the minimiser's piece lands on it), stopped at
+    the first coefficient's zero crossing on their way (where the slope jumps: the
+    minimiser when the jump spans zero), and the Illinois variant of regula falsi for a
+    step that leaves the bracket."""
     lo, s_lo = 0.0, slope0
     hi = 1.0
-    s_hi = _slope(hi, r, q, x, d, lam, delta) if np.isnan(slope1) else slope1
+    c_hi = np.nan
+    if np.isnan(slope1):
+        s_hi, c_hi = _slope(hi, r, q, x, d, lam, delta)
+    else:
+        s_hi = slope1
     while s_hi < 0.0 and hi < MAX_STEP:
         lo, s_lo = hi, s_hi
         hi *= 2.0
-        s_hi = _slope(hi, r, q, x, d, lam, delta)
+        s_hi, c_hi = _slope(hi, r, q, x, d, lam, delta)
     if s_hi < 0.0:
         return hi
+    t_last, s_last, c_last = hi, s_hi, c_hi  # the last point evaluated
     side = 0
     for _ in range(_SEARCHES):
-        if s_hi - s_lo > 0.0:
-            t = lo - s_lo * (hi - lo) / (s_hi - s_lo)
+        t = np.nan
+        if c_last > 0.0:
+            newton = s_last / c_last
+            if abs(newton) <= 4.0 * np.finfo(np.float64).eps * t_last:
+                return t_last  # on the minimiser's piece, to rounding
+            t = t_last - newton
+        if lo < t < hi:
+            side = 0
         else:
-            t = 0.5 * (lo + hi)
-        if not (lo < t < hi):
-            t = 0.5 * (lo + hi)
+            if s_hi - s_lo > 0.0:
+                t = lo - s_lo * (hi - lo) / (s_hi - s_lo)
+            else:
+                t = 0.5 * (lo + hi)
             if not (lo < t < hi):
-                break
-        st = _slope(t, r, q, x, d, lam, delta)
+                t = 0.5 * (lo + hi)
+                if not (lo < t < hi):
+                    break
+        j, tz = _kink(x, d, t_last, t)
+        if j >= 0 and lo < tz < hi:
+            # The slope on both sides of the crossing, whatever sign rounding gives
+            # x_j + t d_j there.
+            st, ct = _slope(tz, r, q, x, d, lam, delta)
+            xt = x[j] + tz * d[j]
+            used = lam[j] * (np.sign(xt) if xt != 0.0 else np.sign(d[j])) * d[j]
+            right = st - used + lam[j] * abs(d[j])
+            left = st - used - lam[j] * abs(d[j])
+            if left <= 0.0 <= right:
+                return tz
+            if right < 0.0:
+                lo, s_lo, st = tz, right, right
+            else:
+                hi, s_hi, st = tz, left, left
+            side = 0
+            t_last, s_last, c_last = tz, st, ct
+            continue
+        st, ct = _slope(t, r, q, x, d, lam, delta)
         if st == 0.0:
             return t
         if st < 0.0:
@@ -154,6 +208,7 @@ def _line_search(r, q, x, d, lam, delta, slope0, slope1):
             if side == 1:
                 s_lo *= 0.5
             side = 1
+        t_last, s_last, c_last = t, st, ct
         if hi - lo <= 1e-15 * hi:
             break
     return hi if s_hi == 0.0 else 0.5 * (lo + hi)
@@ -443,7 +498,7 @@ def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps
         if full <= obj + ARMIJO * slope0:
             t = 1.0
             if mu > 0.0 or reweighted:
-                slope1 = _slope(1.0, r, q, x, d, lam, delta)
+                slope1 = _slope(1.0, r, q, x, d, lam, delta)[0]
                 if slope1 < 0.0:
                     # A damped or reweighted step can stop short of the minimum along
                     # its direction (by orders of magnitude where few samples lie
