@@ -100,14 +100,17 @@ def _huber(r, delta):
 
 @_jit
 def _slope(t, r, q, x, d, lam, delta):
-    """Right derivative of ``P(x + t d)`` (see ``newton.slope``) and its rate of change
-    on the piece at ``t`` (the squared images ``q_i^2`` of the residuals inside the
-    quadratic zone: the L1 terms are piecewise constant in slope)."""
+    """Right derivative of ``P(x + t d)`` (see ``newton.slope``), its rate of change on
+    the piece at ``t`` (the squared images ``q_i^2`` of the residuals inside the
+    quadratic zone: the L1 terms are piecewise constant in slope) and its rounding
+    (one unit in the last place of the sum of its terms' sizes)."""
     s = 0.0
+    size = 0.0
     for j in range(x.shape[0]):
         xt = x[j] + t * d[j]
         sg = np.sign(xt) if xt != 0.0 else np.sign(d[j])
         s += lam[j] * sg * d[j]
+        size += abs(lam[j] * d[j])
     c = 0.0
     for i in range(r.shape[0]):
         v = r[i] - t * q[i]
@@ -118,7 +121,8 @@ def _slope(t, r, q, x, d, lam, delta):
         else:
             c += q[i] * q[i]
         s -= v * q[i]
-    return s, c
+        size += abs(v * q[i])
+    return s, c, np.finfo(np.float64).eps * size
 
 
 @_jit
@@ -143,18 +147,23 @@ def _line_search(r, q, x, d, lam, delta, slope0, slope1):
     nondecreasing (a step from a point of the minimiser's piece lands on it), stopped at
     the first coefficient's zero crossing on their way (where the slope jumps: the
     minimiser when the jump spans zero), and the Illinois variant of regula falsi for a
-    step that leaves the bracket."""
+    step that leaves the bracket.  A point whose slope is within its rounding is the
+    minimiser."""
     lo, s_lo = 0.0, slope0
     hi = 1.0
     c_hi = np.nan
     if np.isnan(slope1):
-        s_hi, c_hi = _slope(hi, r, q, x, d, lam, delta)
+        s_hi, c_hi, noise = _slope(hi, r, q, x, d, lam, delta)
+        if abs(s_hi) <= noise:
+            return hi
     else:
         s_hi = slope1
     while s_hi < 0.0 and hi < MAX_STEP:
         lo, s_lo = hi, s_hi
         hi *= 2.0
-        s_hi, c_hi = _slope(hi, r, q, x, d, lam, delta)
+        s_hi, c_hi, noise = _slope(hi, r, q, x, d, lam, delta)
+        if abs(s_hi) <= noise:
+            return hi
     if s_hi < 0.0:
         return hi
     t_last, s_last, c_last = hi, s_hi, c_hi  # the last point evaluated
@@ -162,10 +171,7 @@ def _line_search(r, q, x, d, lam, delta, slope0, slope1):
     for _ in range(_SEARCHES):
         t = np.nan
         if c_last > 0.0:
-            newton = s_last / c_last
-            if abs(newton) <= 4.0 * np.finfo(np.float64).eps * t_last:
-                return t_last  # on the minimiser's piece, to rounding
-            t = t_last - newton
+            t = t_last - s_last / c_last
         if lo < t < hi:
             side = 0
         else:
@@ -181,12 +187,12 @@ def _line_search(r, q, x, d, lam, delta, slope0, slope1):
         if j >= 0 and lo < tz < hi:
             # The slope on both sides of the crossing, whatever sign rounding gives
             # x_j + t d_j there.
-            st, ct = _slope(tz, r, q, x, d, lam, delta)
+            st, ct, noise = _slope(tz, r, q, x, d, lam, delta)
             xt = x[j] + tz * d[j]
             used = lam[j] * (np.sign(xt) if xt != 0.0 else np.sign(d[j])) * d[j]
             right = st - used + lam[j] * abs(d[j])
             left = st - used - lam[j] * abs(d[j])
-            if left <= 0.0 <= right:
+            if left <= noise and -noise <= right:
                 return tz
             if right < 0.0:
                 lo, s_lo, st = tz, right, right
@@ -195,8 +201,8 @@ def _line_search(r, q, x, d, lam, delta, slope0, slope1):
             side = 0
             t_last, s_last, c_last = tz, st, ct
             continue
-        st, ct = _slope(t, r, q, x, d, lam, delta)
-        if st == 0.0:
+        st, ct, noise = _slope(t, r, q, x, d, lam, delta)
+        if abs(st) <= noise:
             return t
         if st < 0.0:
             lo, s_lo = t, st
@@ -498,8 +504,8 @@ def _iterate(theta, scale, G, y, delta, lam, x, norms, lipschitz, tol, max_steps
         if full <= obj + ARMIJO * slope0:
             t = 1.0
             if mu > 0.0 or reweighted:
-                slope1 = _slope(1.0, r, q, x, d, lam, delta)[0]
-                if slope1 < 0.0:
+                slope1, _, rounding = _slope(1.0, r, q, x, d, lam, delta)
+                if slope1 < -rounding:
                     # A damped or reweighted step can stop short of the minimum along
                     # its direction (by orders of magnitude where few samples lie
                     # inside delta): the line search goes on past it.
