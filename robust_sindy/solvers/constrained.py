@@ -450,12 +450,6 @@ def solve_constrained_admm(
     ys = np.asfortranarray(ys)  # as the residuals (see _theta_x)
     r_eq, r_ub = c_eq.shape[0], c_ub.shape[0]
     c = np.vstack([c_eq, c_ub])
-    gram = ts.T @ ts
-    N = p * n
-    x, z, u_x = np.zeros(N), np.zeros(N), np.zeros(N)
-    s, q, u_s = np.zeros(r_ub), np.zeros(r_ub), np.zeros(r_ub)
-    w, v, u_w = np.zeros((m, n)), np.zeros((m, n)), np.zeros((m, n))
-    fac = _Factor(gram, rho, c, n, r_eq)
 
     def certificate(point, nu=None, mu=None):
         coef = (back * point).reshape(p, n, order="F")
@@ -492,6 +486,12 @@ def solve_constrained_admm(
                 coef, cert = best
                 info = {"history": history, "rho": rho, "start": name}
                 return ConstrainedOutput(coef, 0, "certified", cert.nu, cert.mu, info, cert)
+    gram = ts.T @ ts  # the ADMM's, formed only when a start did not certify
+    N = p * n
+    x, z, u_x = np.zeros(N), np.zeros(N), np.zeros(N)
+    s, q, u_s = np.zeros(r_ub), np.zeros(r_ub), np.zeros(r_ub)
+    w, v, u_w = np.zeros((m, n)), np.zeros((m, n)), np.zeros((m, n))
+    fac = _Factor(gram, rho, c, n, r_eq)
     for it in range(1, max_iter + 1):
         a_x, a_s, a_w = z - u_x, q - u_s, v - u_w
         x0 = fac.solve_m(fac.kappa * _theta_t(ts, ys - a_w) + fac.rho * a_x)
