@@ -562,3 +562,56 @@ def test_cholesky_is_taken_where_the_eigenvalues_show_nothing_would_be_cut(seed)
             w, v = np.linalg.eigh(m)
             exact = v @ ((v.T @ b) / w)
             assert np.linalg.norm(x[0] - exact) <= 1e-5 * np.linalg.norm(exact)
+
+
+def _line_problem(seed):
+    """A line search's data ``(r, q, x, d, lam, delta)`` with ``d`` a descent direction:
+    mixed column scales and heavy-tailed residuals; every third draw with ``delta``
+    far below the residuals (near least absolute deviations), every third with a large
+    penalty on a coefficient the direction drives through zero early (the minimiser
+    then sits on that crossing, a jump of the slope)."""
+    rng = np.random.default_rng(seed)
+    m, p = int(rng.integers(20, 400)), int(rng.integers(2, 12))
+    A = rng.normal(size=(m, p)) * 10.0 ** rng.uniform(-2, 2, size=p)
+    y = rng.standard_t(2, size=m) * 10.0 ** rng.uniform(-3, 3)
+    x = rng.normal(size=p) * (rng.random(p) < 0.7) * np.std(y) / np.linalg.norm(A, axis=0)
+    d = rng.normal(size=p) * np.std(y) / np.linalg.norm(A, axis=0)
+    r, q = y - A @ x, A @ d
+    delta = float(np.median(np.abs(r))) * (1e-3 if seed % 3 == 1 else rng.uniform(0.2, 3))
+    scale = float(np.abs(q).sum()) * delta
+    lam = rng.uniform(0, 1, size=p) * scale / np.abs(d).max()
+    if seed % 3 == 2:
+        j = int(rng.integers(p))
+        x[j] = -0.1 * d[j]  # crosses zero at t = 0.1
+        lam[j] = 100.0 * scale / abs(d[j])
+        r = y - A @ x
+    if nw.slope(0.0, r, q, x, d, lam, delta) > 0:
+        d, q = -d, -q
+        if seed % 3 == 2:
+            x[j] = -0.1 * d[j]
+            r = y - A @ x
+    return r, q, x, d, lam, delta
+
+
+@pytest.mark.skipif(not _kernel.AVAILABLE, reason="numba is not installed")
+def test_the_compiled_line_search_finds_the_exact_minimiser_along_the_direction():
+    from robust_sindy.core.losses import huber
+
+    kinks = searched = 0
+    for seed in range(90):
+        r, q, x, d, lam, delta = _line_problem(seed)
+        slope0 = nw.slope(0.0, r, q, x, d, lam, delta)
+        if not slope0 < 0:
+            continue
+
+        def phi(t, r=r, q=q, x=x, d=d, lam=lam, delta=delta):
+            return huber(r - t * q, delta).sum() + lam @ np.abs(x + t * d)
+
+        exact = nw.line_search(r, q, x, d, lam, delta)  # breakpoints sorted
+        t = _kernel._jit.run("_line_search", r, q, x, d, lam, delta, slope0, np.nan)
+        assert t is not None, "the kernels did not compile"
+        searched += 1
+        assert phi(t) <= phi(exact) + 1e-12 * max(abs(phi(exact)), abs(phi(0.0)))
+        kinks += seed % 3 == 2 and bool(np.isclose(exact, 0.1, rtol=1e-9))
+    assert searched >= 60  # most draws give a descent direction (69 of 90 here)
+    assert kinks >= 20  # the crossing draws did put the minimiser on the crossing (30)
