@@ -340,7 +340,7 @@ def _polish(
     c_rows, b_rows = c_eq[rows], b_eq[rows]
     r_eq = rows.size
     free = (lam_v == 0) & ~pinned  # no kink at zero: in the support, any sign
-    norms = np.tile(np.sqrt(np.einsum("ij,ij->j", theta, theta)), n)
+    norms = np.tile(column_norms(theta), n)
     obj, r, psi = _objective(theta, y, delta, lam_v, x)
     pulled = _sides(r, delta)
     entering = np.zeros_like(x)  # the sign each entering term must take
@@ -406,7 +406,7 @@ def _polish(
         at = pinned_at[first_pin]
         nu[pins[first_pin]] = hh[at] / c_eq[pins[first_pin], at]
         hh[at] = 0.0
-        scale = np.maximum(lam_v, norms * np.repeat(np.sqrt(np.einsum("ij,ij->j", psi, psi)), p))
+        scale = np.maximum(lam_v, norms * np.repeat(column_norms(psi), p))
         excess = np.where((x == 0) & ~blocked & ~free & ~pinned, (np.abs(hh) - lam_v) / scale, 0.0)
         enter = np.zeros_like(excess, dtype=bool)
         if excess.max(initial=0.0) > 1e-10:  # the most violated term enters, one a round
