@@ -17,6 +17,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
+from .core.losses import huber_psi
+from .core.statistics import correlation_time
 from .fitting import fit
 from .selection.bias import (
     BIAS_MARGIN,
@@ -35,8 +37,8 @@ __all__ = [
     "MAX_FLAGGED_FRACTION",
     "MAX_LEFT_OUT",
     "MAX_LIBRARY_NOISE",
-    "MIN_SAMPLES_PER_TERM",
     "RULES",
+    "SEARCH_SAMPLES_FACTOR",
     "STABILITY_BLOCKS",
     "STABILITY_TOLERANCE",
     "Diagnostics",
@@ -45,6 +47,7 @@ __all__ = [
     "count_kinds",
     "diagnose",
     "kind_of",
+    "samples_needed",
     "warn",
 ]
 
@@ -54,8 +57,17 @@ MAX_FLAGGED_FRACTION = 0.3
 #: More samples left out in all (outliers and unresolved derivatives) than this
 #: fraction, and what is left may not represent the trajectory.
 MAX_LEFT_OUT = 0.5
-#: Fewer kept samples per library term than this and the selection is doubtful.
-MIN_SAMPLES_PER_TERM = 5.0
+#: The selection is doubtful where an equation's kept samples hold fewer independent
+#: ones (their count over the correlation time of the reported model's residuals) than
+#: ``SEARCH_SAMPLES_FACTOR * k * log(p - k)`` for its k selected terms among the p of
+#: the library: below that sample count an L1 path fails to find the k terms of the
+#: truth among p with high probability when the library's columns are independent
+#: Gaussian (the sharp threshold of Wainwright 2009, IEEE Trans. Inf. Theory 55:2183,
+#: is 2; the case whose threshold is known exactly); libraries of correlated monomials
+#: generally need more.  A count of samples per library term alone does not decide it:
+#: a sparse model is found among many terms from few samples per term where its terms
+#: are few.
+SEARCH_SAMPLES_FACTOR = 2.0
 #: Condition number of the selected terms (unit-norm columns) beyond which their
 #: coefficients are not identifiable from the data.
 MAX_CONDITION = 1e6
@@ -91,6 +103,14 @@ class Diagnostics:
         Samples (all trajectories) and library terms.
     samples_per_term : float
         Samples kept after screening per library term.
+    independent_samples : ndarray, shape (n,)
+        Per equation, the kept samples (the weak form: test functions) over the
+        correlation time of the reported model's residuals: the independent samples
+        they hold.
+    samples_needed : ndarray, shape (n,)
+        Per equation, the independent samples an L1 path needs to find its selected
+        terms among the library's in a library of independent columns
+        (:func:`samples_needed`).
     temporal_flagged_entries, temporal_flagged_samples : int
         Entries (state, sample) the temporal screen flagged, and samples with any.
     model_flagged_samples : int
@@ -337,6 +357,8 @@ class Diagnostics:
     trapping_eigenvalue: float = float("nan")
     repaired_rows: int = 0
     record_samples: int = 0
+    independent_samples: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    samples_needed: np.ndarray = field(default_factory=lambda: np.zeros(0))
 
     @property
     def weak(self) -> np.ndarray:
@@ -380,6 +402,10 @@ class Diagnostics:
             + (", restarted" if self.screening_restarted else ""),
             f"  unresolved derivatives: {self.unresolved_samples} samples left out",
             f"  left out in all: {100 * self.flagged_fraction:.1f} %",
+            "  independent samples per equation: "
+            + np.array2string(self.independent_samples, precision=0, floatmode="fixed")
+            + "; needed for the selected terms' search: "
+            + np.array2string(self.samples_needed, precision=0, floatmode="fixed"),
             f"  certified: {self.certified.tolist()}",
             f"  condition numbers: {np.array2string(self.condition_number, precision=2)}",
             f"  library noise along its weakest direction: {self.library_noise:.2g}; "
@@ -566,14 +592,53 @@ def _pruned_message(d, e) -> str:
     )
 
 
+def samples_needed(selected, n_terms: int) -> np.ndarray:
+    """The independent samples an L1 path needs to find ``selected`` terms (k per
+    equation) among ``n_terms`` (p) in a library of independent columns:
+    ``SEARCH_SAMPLES_FACTOR * k * log(p - k)``, and at least k (0 for an empty
+    equation; see :data:`SEARCH_SAMPLES_FACTOR`)."""
+    k = np.asarray(selected, dtype=float)
+    spare = np.maximum(n_terms - k, 1.0)
+    return np.where(k > 0, np.maximum(SEARCH_SAMPLES_FACTOR * k * np.log(spare), k), 0.0)
+
+
+def _short_search(d) -> np.ndarray | None:
+    """The equations whose kept samples hold fewer independent ones than their
+    selected terms' search needs."""
+    if d.independent_samples.size == 0:
+        return None
+    rows = np.flatnonzero(d.independent_samples < d.samples_needed)
+    return rows if rows.size else None
+
+
+def _join(values, spec: str) -> str:
+    return ", ".join(format(v, spec) for v in np.asarray(values).tolist())
+
+
 #: The reasons to doubt a model, in the order their warnings are raised.
 RULES: tuple[Rule, ...] = (
     Rule(
-        "few samples per term",
-        lambda d: d.samples_per_term < MIN_SAMPLES_PER_TERM,
+        "fewer samples than terms",
+        lambda d: d.samples_per_term <= 1,
         lambda d, _: (
-            f"only {d.samples_per_term:.1f} samples per library term were fitted: the "
-            "selected terms are not reliable; use more data or a smaller library"
+            f"only {d.samples_per_term:.2f} samples per library term were fitted: the "
+            "fits on every term that the screens and the selection rest on are "
+            "underdetermined, and the selected terms are not reliable; use more data or "
+            "a smaller library"
+        ),
+    ),
+    Rule(
+        "few samples for the search",
+        lambda d: _short_search(d),
+        lambda d, e: (
+            f"equations {e.tolist()}: the kept samples hold about "
+            f"{_join(d.independent_samples[e], '.0f')} independent ones (over the "
+            "correlation time of the residuals), fewer than the "
+            f"{_join(d.samples_needed[e], '.0f')} that an L1 search for "
+            f"{_join(d.selected_terms[e], 'd')} terms among {d.n_terms} needs in a "
+            f"library of independent columns ({SEARCH_SAMPLES_FACTOR:g} k log(p - k); "
+            "correlated terms need more): the selected terms are not reliable; use "
+            "more data or a smaller library"
         ),
     ),
     Rule(
@@ -924,6 +989,8 @@ def diagnose(
     )
     m, p = screened.size, th.shape[1]
     coef_t = coef.T
+    selected = np.count_nonzero(coef, axis=0)
+    tau = correlation_time(huber_psi(yk - th @ standard, delta_s), kept.segments)
     return Diagnostics(
         n_samples=m,
         n_terms=p,
@@ -943,7 +1010,9 @@ def diagnose(
         condition_number=_condition_numbers(kept.theta_s, coef_t),
         library_noise=allowed,
         support_noise=support_noise,
-        selected_terms=np.count_nonzero(coef, axis=0),
+        selected_terms=selected,
+        independent_samples=yk.shape[0] / tau,
+        samples_needed=samples_needed(selected, p),
         constraint_residual=float("nan") if constrained is None else constrained.residual,
         constraints_certified=True if constrained is None else constrained.converged,
         constrained_delta=(

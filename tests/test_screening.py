@@ -1,12 +1,15 @@
 """Temporal screen, robust derivatives, diagnostics and data-size checks."""
 
+import dataclasses
 import warnings
 
 import numpy as np
 import pytest
+import scipy.signal
 
 from robust_sindy import HuberSINDy, IdentificationWarning, PolynomialLibrary
 from robust_sindy.core import compiled as _compiled
+from robust_sindy.diagnostics import kind_of, samples_needed
 from robust_sindy.selection import correlation_time
 from robust_sindy.systems import Lorenz
 from robust_sindy.timeseries.differentiation import local_polynomial_derivative
@@ -94,15 +97,83 @@ def test_too_few_samples_for_the_library_is_an_error():
         HuberSINDy().fit(x, 0.1, x_dot=x)
 
 
+def _correlated(rng, shape, phi):
+    """Unit-variance AR(1) noise along the first axis (correlation time (1+phi)/(1-phi))."""
+    e = rng.normal(size=shape)
+    return scipy.signal.lfilter([1.0], [1.0, -phi], e, axis=0) * np.sqrt(1 - phi**2)
+
+
+def test_the_independent_samples_are_the_kept_ones_over_the_errors_correlation_time():
+    data = Lorenz().generate(t_end=20.0)
+    for seed in range(3):
+        for phi in (0.0, 0.8):
+            rng = np.random.default_rng(seed)
+            noise = 0.02 * data.x_dot.std(axis=0) * _correlated(rng, data.x.shape, phi)
+            d = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot + noise).diagnostics_
+            kept = d.n_samples * (1 - d.flagged_fraction)
+            ratio = d.independent_samples / (kept * (1 - phi) / (1 + phi))
+            low, high = (0.9, 1.0) if phi == 0 else (0.5, 2.0)
+            assert np.all((ratio > low) & (ratio <= high)), (seed, phi, ratio)
+
+
 @pytest.mark.filterwarnings("ignore::robust_sindy.ConvergenceWarning")
-def test_few_samples_per_term_warn_and_say_so_in_the_diagnostics():
-    data = Lorenz().generate(t_end=0.4)  # 41 samples for 20 cubic terms
-    with pytest.warns(IdentificationWarning, match="samples per library term"):
-        model = HuberSINDy(library=PolynomialLibrary(degree=3)).fit(
-            data.x, data.t, x_dot=data.x_dot
-        )
-    assert model.diagnostics_.samples_per_term < 5
-    assert model.diagnostics_.problems()
+def test_a_record_too_short_for_the_search_warns_and_says_so_in_the_diagnostics():
+    # 151 samples for 35 quartic terms, derivatives whose errors are correlated over
+    # about 39 samples: a handful of independent samples per equation.
+    data = Lorenz().generate(t_end=1.5)
+    fired = 0
+    for seed in range(4):
+        rng = np.random.default_rng(seed)
+        x_dot = data.x_dot + 0.02 * data.x_dot.std(axis=0) * _correlated(rng, data.x.shape, 0.95)
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            model = HuberSINDy(library=PolynomialLibrary(degree=4)).fit(data.x, data.t, x_dot=x_dot)
+        d = model.diagnostics_
+        short = np.flatnonzero(d.independent_samples < d.samples_needed)
+        messages = [str(w.message) for w in caught if kind_of(w) == "few samples for the search"]
+        assert len(messages) == (short.size > 0)
+        if short.size:
+            fired += 1
+            assert messages[0].startswith(f"equations {short.tolist()}: the kept samples hold")
+            assert messages[0] in d.problems()
+        assert "independent samples per equation" in repr(d)
+    assert fired >= 3
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_few_samples_per_library_term_do_not_warn_when_the_search_has_enough(seed):
+    # Lorenz on a degree-5 library: 56 terms, 251 samples (fewer than 5 per term), yet
+    # a search for 2 or 3 terms among 56 needs about 16 to 24 independent samples.
+    rng = np.random.default_rng(seed)
+    lorenz = Lorenz()
+    data = lorenz.generate(t_end=10.0, dt=0.04, x0=lorenz.initial_state() + rng.normal(size=3))
+    x = data.x + 0.005 * data.x.std(axis=0) * rng.normal(size=data.x.shape)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = HuberSINDy(library=PolynomialLibrary(degree=5)).fit(x, data.t, x_dot=data.x_dot)
+    d = model.diagnostics_
+    assert d.samples_per_term < 5
+    assert d.independent_samples.min() > 2 * d.samples_needed.max()
+    assert not {kind_of(w) for w in caught} & {
+        "few samples for the search",
+        "fewer samples than terms",
+    }
+
+
+def test_the_sample_rules_fire_on_exactly_the_equations_short_of_samples():
+    data = Lorenz().generate(t_end=5.0)
+    d = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
+    assert d.problems() == []
+    np.testing.assert_array_equal(d.samples_needed, samples_needed(d.selected_terms, d.n_terms))
+    short = dataclasses.replace(d, independent_samples=d.samples_needed * [2.0, 0.9, 0.5])
+    ((kind, message),) = short.findings()
+    assert kind == "few samples for the search" and message.startswith("equations [1, 2]:")
+    ((kind, _),) = dataclasses.replace(d, samples_per_term=1.0).findings()
+    assert kind == "fewer samples than terms"
+    # k log(p - k) with the factor of the sharp threshold; at least k; nothing to find
+    # in an empty equation
+    need = samples_needed([0, 1, 3, 9, 10], 10)
+    np.testing.assert_allclose(need, [0.0, 2 * np.log(9), 6 * np.log(7), 9.0, 10.0])
 
 
 def test_clean_data_gives_diagnostics_without_problems():
