@@ -74,7 +74,7 @@ def run_case(case: tuple) -> dict:
     d = model.diagnostics_
     coef = model.coef_.T
     return dict(
-        family=family, system=f"{system.name}", samples=m, noise=level,
+        family=family, system=system.name, samples=m, noise=level,
         exact=bool(np.array_equal(coef != 0, system.coef != 0)),
         error=float(np.linalg.norm(coef - system.coef) / np.linalg.norm(system.coef)),
         kinds=sorted({kind_of(c) for c in caught}),
