@@ -89,6 +89,27 @@ def test_the_support_is_unit_free_and_grows_with_the_noise():
     assert widths[1] > widths[0]
 
 
+@pytest.mark.parametrize("seed", range(3))
+def test_the_support_passes_the_fastest_states_band(seed):
+    # A slow and a fast oscillation (periods 20 and 2, 40 samples per fast period) at
+    # 2 % noise: the half width is the one the fast state asks for on its own, which is
+    # narrower than the slow state's (a support set by the slow state would damp the
+    # fast one's signal below its noise in every library column that holds it).
+    rng = np.random.default_rng(seed)
+    t = np.arange(4000) * 0.05
+    x = np.column_stack([np.sin(2 * np.pi * t / 20), np.sin(2 * np.pi * t / 2)])
+    x = x + 0.02 * np.sqrt(np.mean(x**2, axis=0)) * rng.normal(size=x.shape)
+
+    def width(columns):
+        v = x[:, columns]
+        return support_half_width(Trajectories.from_user(v, t), temporal_screen(v, t))
+
+    slow, fast, both = width([0]), width([1]), width([0, 1])
+    assert slow.noise_limited and fast.noise_limited
+    assert slow.half_width > 2 * fast.half_width
+    assert both.half_width == pytest.approx(fast.half_width, rel=1e-12)
+
+
 def test_weak_rows_of_several_trajectories_never_reach_across_them():
     data = _lorenz(t_end=6.0)
     a, b = data.x[:300], data.x[300:]

@@ -20,10 +20,13 @@ equation solves the same Huber + L1 problem on ``(G, b)`` (SPEC §9).
 * The half width ``h`` (:func:`support_half_width`), in units of time: the test
   function's spectrum falls to half its peak at the frequency where each state's
   spectrum meets ten times the white-noise floor that the temporal screen measured
-  (the widest over the states with a signal above their noise): the test functions
-  pass the band where the signal dominates and average the noise beyond it; at least
-  ``MIN_SUPPORT_SAMPLES`` steps, where the quadrature is accurate.  Rescaling time
-  rescales ``h``: unit-free.
+  (the narrowest over the states with a signal above their noise): the test functions
+  pass every state's band where its signal dominates and average the noise beyond it;
+  at least ``MIN_SUPPORT_SAMPLES`` steps, where the quadrature is accurate.  Rescaling
+  time rescales ``h``: unit-free.  Every library column carries the faster states'
+  signal: a support as wide as the slowest state's band allows would damp that signal
+  below the noise it leaves in the columns, and the errors in the variables would then
+  bias the coefficients, as no narrower support does.
 * Entries the temporal screen flagged enter the integrals by their repaired values; the
   rows whose support holds a flagged entry are the row screen's suspects.
 
@@ -207,7 +210,7 @@ def support_half_width(data: Trajectories, temporal: TemporalScreening) -> Suppo
     """The test functions' half width (time units; see the module docstring), at least
     ``MIN_SUPPORT_SAMPLES`` median steps of every trajectory."""
     states = [temporal.repaired[seg] for seg in data.segments]
-    h = 0.0
+    h = np.inf
     steps = []
     for x, t in zip(states, data.t, strict=True):
         if x.shape[0] < 8:
@@ -219,10 +222,11 @@ def support_half_width(data: Trajectories, temporal: TemporalScreening) -> Suppo
                 continue
             corner = _corner(x[:, k], t, sigma)
             if corner is not None:
-                h = max(h, HALF_AMPLITUDE / (2.0 * np.pi * corner))
+                h = min(h, HALF_AMPLITUDE / (2.0 * np.pi * corner))
     if not steps:
         raise ValueError("the weak form needs trajectories of at least 8 samples")
     least = MIN_SUPPORT_SAMPLES * max(steps)
+    h = 0.0 if np.isinf(h) else h  # no state with a signal above its noise
     width = max(h, least)
     return Support(width, h > least, width / max(steps))
 
