@@ -508,7 +508,7 @@ def test_the_cylinder_wake_with_noise_keeps_its_limit_cycle():
     # 2 % Gaussian noise on the states, weak form: the test functions are as narrow as
     # the oscillating modes' band asks (the shift mode's slower band would damp their
     # signal in the library below its noise, and bias the growth and decay rates: the
-    # level 8-10 % low).  Three draws, each within 2 % (about 0.5 % measured).
+    # level up to 10 % low).  Three draws, each within 2 % (about 0.5 % measured).
     from robust_sindy.datasets import load_cylinder_wake
 
     data = load_cylinder_wake()

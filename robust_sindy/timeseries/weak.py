@@ -25,8 +25,8 @@ equation solves the same Huber + L1 problem on ``(G, b)`` (SPEC §9).
   at least ``MIN_SUPPORT_SAMPLES`` steps, where the quadrature is accurate.  Rescaling
   time rescales ``h``: unit-free.  Every library column carries the faster states'
   signal: a support as wide as the slowest state's band allows would damp that signal
-  below the noise it leaves in the columns, and the errors in the variables would then
-  bias the coefficients, as no narrower support does.
+  in the columns below the noise left there, and the errors in the variables would
+  bias the coefficients.
 * Entries the temporal screen flagged enter the integrals by their repaired values; the
   rows whose support holds a flagged entry are the row screen's suspects.
 
