@@ -210,7 +210,7 @@ def support_half_width(data: Trajectories, temporal: TemporalScreening) -> Suppo
     """The test functions' half width (time units; see the module docstring), at least
     ``MIN_SUPPORT_SAMPLES`` median steps of every trajectory."""
     states = [temporal.repaired[seg] for seg in data.segments]
-    h = np.inf
+    widths = []  # per state with a signal above its noise, the half width it asks for
     steps = []
     for x, t in zip(states, data.t, strict=True):
         if x.shape[0] < 8:
@@ -222,11 +222,11 @@ def support_half_width(data: Trajectories, temporal: TemporalScreening) -> Suppo
                 continue
             corner = _corner(x[:, k], t, sigma)
             if corner is not None:
-                h = min(h, HALF_AMPLITUDE / (2.0 * np.pi * corner))
+                widths.append(HALF_AMPLITUDE / (2.0 * np.pi * corner))
     if not steps:
         raise ValueError("the weak form needs trajectories of at least 8 samples")
     least = MIN_SUPPORT_SAMPLES * max(steps)
-    h = 0.0 if np.isinf(h) else h  # no state with a signal above its noise
+    h = min(widths, default=0.0)
     width = max(h, least)
     return Support(width, h > least, width / max(steps))
 
