@@ -194,7 +194,11 @@ class Diagnostics:
         Per equation, how much higher the BIC of the best other candidate support
         scored than the chosen one (``Selection.margin``); ``inf`` when there is no
         other, NaN with a fixed ``lam`` or ``criterion="cv"``.  Below
-        ``MIN_BIC_MARGIN`` the data do not strongly prefer the chosen support.
+        ``MIN_BIC_MARGIN`` the data do not strongly prefer the chosen support.  With
+        ``constraints``, over the supports the search under them refitted
+        (``constrained_.candidates``, their criterion summed over the equations): those
+        whose support differs in the equation
+        (:meth:`~robust_sindy.selection.constrained.ConstrainedRefit.margins`).
     selected_terms : ndarray of int (n,)
         Terms selected per equation; an equation without any is warned about.
     constraint_residual : float
@@ -234,7 +238,8 @@ class Diagnostics:
         ``pruned`` report.  For an equation whose support the weak form's rescoring
         replaced (``errors_in_variables``), the margin is that of the rescoring's score
         (chi-square under the noise the terms carry plus ``log(rows)`` per term) over
-        the supports it fitted.
+        the supports it fitted.  With ``constraints``, over the search's candidates, as
+        ``bic_margin``.
     subset_size : ndarray of int (n,)
         Besides the ``lam`` path's, the criterion compares the best supports of every
         size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
@@ -251,7 +256,10 @@ class Diagnostics:
         the support and with a fixed ``lam``.  With estimated derivatives it leaves out
         the differentiation error, which is systematic, so it overstates how sure the
         data are.  A selected term below ``significance_level`` is not vouched for by the
-        data (a warning says so).
+        data (a warning says so).  With ``constraints``, the statistic of the model
+        under them, at its ``constrained_delta``, in the directions the constraints
+        leave free (:func:`~robust_sindy.selection.constrained.constrained_significance`;
+        ``inf`` for a coefficient they fix).
     significance_level : float
         The bar of ``significance``: ``SIGNIFICANCE`` (5) with measured derivatives,
         ``SIGNIFICANCE_ESTIMATED`` (10) with estimated ones, whose error the statistic
@@ -262,7 +270,10 @@ class Diagnostics:
         rest refitted after each, while another term of the equation reaches
         ``SIGNIFICANCE_ESTIMATED``; a drop after which none does is undone); NaN for
         every other term.  A dropped term at
-        ``VISIBLE`` (2) or more may be real: a warning says so.
+        ``VISIBLE`` (2) or more may be real: a warning says so.  With ``constraints``,
+        a term the search under them put back in the model is not dropped (NaN), and
+        the terms their own significance rounds left out are added
+        (``constrained_.pruned``).
     derivative_half_window : ndarray of int (n_states,)
         Half width, in samples, of the local quartic that estimated each state's
         derivative (chosen from the data by
@@ -815,17 +826,29 @@ RULES: tuple[Rule, ...] = (
             "(differences "
             + ", ".join(f"{v:.1f}" for v in d.rival_margin[close])
             + "): the data do not strongly prefer the selected terms; compare the "
-            "candidates (selection_.candidates and selection_.scores on the path, "
-            "selection_.subsets and selection_.subset_scores), and try more data or "
-            "measured derivatives"
+            + _candidates_where(d)
+            + ", and try more data or measured derivatives"
         ),
     ),
 )
 
 
+def _candidates_where(d) -> str:
+    """Where the close-runner-up warning's candidates are."""
+    if np.isfinite(d.constraint_residual):
+        return "candidates (constrained_.candidates and constrained_.scores)"
+    return (
+        "candidates (selection_.candidates and selection_.scores on the path, "
+        "selection_.subsets and selection_.subset_scores)"
+    )
+
+
 def _runner_up_score(d, close) -> str:
-    """The score the close-runner-up warning's margins are on: the BIC, or for the
-    equations the weak form replaced, the score under the noise their terms carry."""
+    """The score the close-runner-up warning's margins are on: the BIC (under
+    constraints, summed over the equations), or for the equations the weak form
+    replaced, the score under the noise their terms carry."""
+    if np.isfinite(d.constraint_residual):
+        return "BIC summed over the equations, under the constraints"
     replaced = [
         k for k in close if k < d.errors_in_variables.size and d.errors_in_variables[k] == 1
     ]
@@ -980,8 +1003,24 @@ def diagnose(
         inside = (contrib >= np.maximum(selection_tol, own)) & (contrib < floor.selection_tol)
         below[inside] = contrib[inside]
     tstat = np.full(coef.shape, np.nan)
-    if selection is not None:
+    if constrained is not None and constrained.significance is not None:
+        tstat = constrained.significance  # the model under the constraints, at its delta
+    elif selection is not None:
         tstat = robust_t(th, yk, standard, delta_s, kept.segments)
+    pruned = final.pruned
+    bic_margin = (
+        selection.margin.copy()
+        if selection is not None and selection.criterion == "bic"
+        else np.full(n, np.nan)
+    )
+    rival_margin = _rival_margin(selection, rescored, standard, n)
+    if constrained is not None and constrained.candidates is not None:
+        # The search under the constraints chose the model: its candidates are the
+        # alternatives, and a term it put back is not dropped.
+        bic_margin, rival_margin = constrained.margins()
+        pruned = np.where(coef != 0, np.nan, pruned)
+        if constrained.pruned is not None:
+            pruned = np.where(np.isnan(constrained.pruned), pruned, constrained.pruned)
     keep, screening = rows.keep, rows.screening
     screened = ~keep
     absent = (  # samples without a measured derivative (strong form only)
@@ -1037,12 +1076,8 @@ def diagnose(
         bias_ratio=np.ascontiguousarray(final.bias_ratio.T),
         truncation_ratio=np.ascontiguousarray(final.truncation_ratio.T),
         below_floor=np.ascontiguousarray(below.T),
-        bic_margin=(
-            selection.margin.copy()
-            if selection is not None and selection.criterion == "bic"
-            else np.full(n, np.nan)
-        ),
-        rival_margin=_rival_margin(selection, rescored, standard, n),
+        bic_margin=bic_margin,
+        rival_margin=rival_margin,
         subset_size=(
             selection.subset_size.copy() if selection is not None else np.zeros(n, dtype=int)
         ),
@@ -1051,7 +1086,7 @@ def diagnose(
         ),
         significance=np.ascontiguousarray(tstat.T),
         significance_level=SIGNIFICANCE if deriv.measured else SIGNIFICANCE_ESTIMATED,
-        pruned=np.ascontiguousarray(final.pruned.T),
+        pruned=np.ascontiguousarray(pruned.T),
         aliased=[feature_names[j] for j in np.flatnonzero(floor.aliased)],
         derivative_half_window=deriv.windows.copy(),
         formulation="strong" if weak is None else "weak",

@@ -59,12 +59,14 @@ from .selection.choice import (
     noise_floor,
 )
 from .selection.constrained import (
+    ConstrainedRefit,
     build_constraints,
     constrained_selection,
+    constrained_significance,
     constrained_stability,
 )
 from .selection.criteria import CRITERIA
-from .selection.final import FinalSelection, final_selection
+from .selection.final import FinalSelection, final_selection, significance_bar
 from .selection.problem import Problem
 from .selection.rows import RowScreen, screen_samples
 from .selection.stability import boundedness, quadratic_parts
@@ -180,6 +182,7 @@ class Identification:
     diagnostics: Diagnostics
     weak: WeakRows | None = None
     covered: np.ndarray | None = None
+    constrained: ConstrainedRefit | None = None
 
 
 class HuberSINDy(BaseEstimator):
@@ -304,6 +307,11 @@ class HuberSINDy(BaseEstimator):
         The ``lam`` path of ``lam="auto"``.
     selection_ : Selection or None
         Scores and candidates of ``lam="auto"``.
+    constrained_ : ConstrainedRefit or None
+        With ``constraints``, the search under them: the supports it refitted
+        (``candidates``) and their criterion (``scores``), the chosen one, its
+        ``delta``, ``significance`` and ``unstable`` terms
+        (:class:`~robust_sindy.selection.constrained.ConstrainedRefit`); None without.
     outliers_ : ndarray of bool, shape (n_rows, n_targets)
         Residuals under the final model beyond ``delta_``, per sample (per test
         function with the weak form).
@@ -522,12 +530,18 @@ class HuberSINDy(BaseEstimator):
                 final.coef.shape,
             )  # fmt: skip
             refit = constrained_selection(
-                kept, final.coef, fitted.result.delta, con, method=self.method, solver=self.solver
-            )
-            refit = replace(refit, unstable=constrained_stability(
-                kept, refit, con, blocks=STABILITY_BLOCKS, tolerance=STABILITY_TOLERANCE,
-                method=self.method, solver=self.solver,
-            ))  # fmt: skip
+                kept, final.coef, fitted.result.delta, con, method=self.method,
+                solver=self.solver,
+                bar=None if choice.selection is None else significance_bar(deriv.measured),
+            )  # fmt: skip
+            refit = replace(
+                refit,
+                unstable=constrained_stability(
+                    kept, refit, con, blocks=STABILITY_BLOCKS, tolerance=STABILITY_TOLERANCE,
+                    method=self.method, solver=self.solver,
+                ),
+                significance=constrained_significance(kept, refit, con),
+            )  # fmt: skip
             final = replace(final, coef=refit.coef)
         covered = None if weak is None else weak.covered(rows.keep)
         stages.start("diagnostics")
@@ -542,7 +556,7 @@ class HuberSINDy(BaseEstimator):
         stages.close()
         return Identification(
             data, library, theta, temporal, deriv, problem, rows, floor, choice, fitted, final,
-            report, weak, covered,
+            report, weak, covered, refit,
         )  # fmt: skip
 
     def _weak_rows(
@@ -650,6 +664,7 @@ class HuberSINDy(BaseEstimator):
         self.selection_tol_ = found.floor.selection_tol
         self.selection_ = choice.selection
         self.path_ = None if choice.selection is None else choice.selection.path
+        self.constrained_ = found.constrained
         self.result_ = fitted.result
         # The final model's threshold: under constraints, the constrained model's own.
         self.delta_ = (

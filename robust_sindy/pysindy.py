@@ -74,7 +74,9 @@ class HuberOptimizer(BaseOptimizer):
     ----------
     coef_ : ndarray (n_targets, n_features)
     result_ : FitResult
-        The certificate and solver report of the last fit.
+        The certificate and solver report of the last fit (with ``constraints`` and
+        ``lam="auto"``, of the refit of the chosen terms with each equation's loss on
+        its own scale, :func:`robust_sindy.selection.constrained.scaled_fit`).
     """
 
     def __init__(
@@ -108,6 +110,7 @@ class HuberOptimizer(BaseOptimizer):
         x, y = np.asarray(x, dtype=float), np.asarray(y, dtype=float)
         options = self.solver_options or {}
         delta, lam, coef, con = self.delta, self.lam, None, self.constraints
+        res = None
         if isinstance(lam, str) and lam == "auto":
             from .selection import auto_delta, select
 
@@ -123,26 +126,28 @@ class HuberOptimizer(BaseOptimizer):
             delta, lam = scaler.delta_to_user(sel.delta), scaler.lam_to_user(sel.lam)
             coef = scaler.coef_to_user(sel.coef)
             if self.constraints is not None:
-                from .selection.constrained import constrained_selection, held_off_support
+                from .selection.constrained import (
+                    constrained_selection,
+                    held_off_support,
+                    scaled_fit,
+                )
                 from .selection.problem import Problem
 
                 found = constrained_selection(
                     Problem(x, y2, scaler, [slice(0, len(y2))]), coef, delta,
                     self.constraints, method=self.method, solver=self.solver,
                 )  # fmt: skip
-                # The chosen support's constrained refit, over the whole library.
+                # The chosen support's constrained refit over the whole library, each
+                # equation's loss on its own scale as in the search.
                 con = held_off_support(self.constraints, found.support)
-                delta, lam, coef = found.delta, 0.0, None
-        res = fit(
-            x,
-            y,
-            method=self.method,
-            delta=delta,
-            lam=lam,
-            solver=self.solver,
-            constraints=con,
-            **options,
-        )
+                coef, res = scaled_fit(
+                    x, y2, found.delta, con, method=self.method, solver=self.solver
+                )
+        if res is None:
+            res = fit(
+                x, y, method=self.method, delta=delta, lam=lam, solver=self.solver,
+                constraints=con, **options,
+            )  # fmt: skip
         self.result_ = res
         self.coef_ = (res.coef if coef is None else coef.reshape(res.coef.shape)).T
         self.history_.append(self.coef_)

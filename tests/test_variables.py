@@ -187,6 +187,9 @@ def test_the_runner_up_warning_names_the_score_its_margins_are_on():
 
     from robust_sindy.diagnostics import _runner_up_score
 
-    d = SimpleNamespace(errors_in_variables=np.array([0, 1, -1]))
+    d = SimpleNamespace(errors_in_variables=np.array([0, 1, -1]), constraint_residual=np.nan)
     assert _runner_up_score(d, [0, 2]) == "BIC"
     assert "for equations [1], replaced under the noise" in _runner_up_score(d, [0, 1])
+    # Under constraints the margins are on the criterion summed over the equations.
+    d.constraint_residual = 1e-15
+    assert "summed over the equations" in _runner_up_score(d, [0, 1])

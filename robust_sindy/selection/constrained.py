@@ -13,7 +13,14 @@ equations at once, for the support with the best information criterion:
 * each candidate support is refitted without penalty under the constraints at the
   chosen delta (:func:`robust_sindy.fit` with ``constraints``, on the support's
   columns; every other coefficient held at zero), certified by the constrained KKT
-  conditions;
+  conditions.  Each equation's loss is taken on its own scale,
+  ``sum_k H_1(r_k / delta_k) = sum_k H_{delta_k}(r_k) / delta_k^2`` (the targets and
+  coefficients divided by ``delta_k``, the constraints' rows rescaled to match): the
+  criterion weighs each equation's loss by ``1 / sigma_k^2`` alike, and a coefficient
+  tied across equations is then set by the equations that determine it best.  The
+  plain sum ``sum_k H_{delta_k}(r_k)`` (what :func:`robust_sindy.fit` solves) weighs
+  an equation by ``delta_k^2``: the one with the largest residuals in its own units
+  sets the tied coefficients;
 * the criterion is the robust BIC of the unconstrained selection
   (:func:`robust_sindy.selection.criteria.information_criterion`: the Huber loss on
   the scale ``delta / 1.345``, the residuals' correlation time, ``log(m / tau)`` per
@@ -26,34 +33,47 @@ equations at once, for the support with the best information criterion:
   quadratic term tied to another equation's must be balanced by a linear one, which
   then pays its way.
 
+Then the significance rounds of the unconstrained selection run under the
+constraints (``_prune``): the coefficient with the smallest robust t of the model
+under them (:func:`constrained_significance`) is left out while it is below the bar,
+where the criterion does not prefer keeping it by ``MIN_BIC_MARGIN`` or more.
 Coefficients that the constraints hold at zero on the final support (an energy-
 preserving model has no ``x0^2`` in ``(x0)'``) are left out of it.
+
+The diagnostics describe the model under the constraints: the robust t of its
+coefficients, the criterion's margin to the other supports the search refitted
+(:meth:`ConstrainedRefit.margins`) and the terms that leaving out a block of the data
+changes (:func:`constrained_stability`).
 """
 
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
+import scipy.linalg
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from ..core.constraints import LinearConstraints
+from ..core.constraints import ACTIVE_TOL, LinearConstraints
 from ..core.losses import huber, huber_psi
 from ..core.scaling import fitted_scale_factor, robust_scale
 from ..core.statistics import correlation_time
 from ..fitting import HUBER_EFFICIENCY_CONSTANT, delta_floor, fit
-from .criteria import bic_from_loss, bic_terms, blocked_folds
+from .criteria import MIN_BIC_MARGIN, bic_from_loss, bic_terms, blocked_folds, score_margin
 from .problem import Problem
+from .significance import SIGNIFICANCE_ESTIMATED
 
 __all__ = [
     "ConstrainedRefit",
     "build_constraints",
     "coefficient_groups",
     "constrained_selection",
+    "constrained_significance",
     "constrained_stability",
     "held_off_support",
+    "scaled_fit",
     "tied_closure",
 ]
 
@@ -163,6 +183,19 @@ class ConstrainedRefit:
         The Huber threshold of the refit: the constrained model's own.
     unstable : ndarray of bool (n, p), optional
         :func:`constrained_stability` of the selected terms, when it was measured.
+    significance : ndarray (p, n), optional
+        :func:`constrained_significance` of the selected terms, when it was measured.
+    pruned : ndarray (p, n), optional
+        The robust t of each coefficient the significance rounds under the
+        constraints left out (NaN elsewhere; None without them).
+    candidates : ndarray (L, p, n), optional
+        Every support the search refitted, as its refitted coefficients (those the
+        constraints hold at zero left out), in the order the search tried them.
+    scores : ndarray (L,), optional
+        The summed criterion of each candidate.
+    chosen : int
+        The index of the chosen support among the candidates: the lowest score, less
+        the terms the significance rounds left out.
     """
 
     coef: np.ndarray
@@ -174,6 +207,36 @@ class ConstrainedRefit:
     evaluated: int = 0
     delta: np.ndarray | None = None
     unstable: np.ndarray | None = None
+    significance: np.ndarray | None = None
+    pruned: np.ndarray | None = None
+    candidates: np.ndarray | None = None
+    scores: np.ndarray | None = None
+    chosen: int = -1
+
+    def margins(self) -> tuple[np.ndarray, np.ndarray]:
+        """Per equation, the summed criterion of the best other candidate minus the
+        best one's: over the candidates whose support differs from the best one's in
+        that equation, and over those that are another model than the one chosen there
+        (they leave out one of its terms or change one of its coefficients by more
+        than half; :func:`~robust_sindy.selection.criteria.score_margin`, the chosen
+        model as its ``reference``: the best one less the terms the significance rounds
+        left out); ``inf`` when there is none.  A candidate that changes several
+        equations counts in each."""
+        n = self.coef.shape[1]
+        if self.candidates is None or not len(self.scores):
+            return np.full(n, np.inf), np.full(n, np.inf)
+        scores = np.repeat(np.asarray(self.scores, dtype=float)[:, None], n, axis=1)
+        best = self.chosen
+        if self.scores[best] > self.scores.min():
+            best = int(np.argmin(self.scores))
+        best = np.full(n, best)
+        return (
+            score_margin(scores, self.candidates, best),
+            score_margin(
+                scores, self.candidates, best, rivals=True,
+                reference=self.candidates[self.chosen],
+            ),
+        )  # fmt: skip
 
 
 def held_off_support(constraints: LinearConstraints, support) -> LinearConstraints:
@@ -188,12 +251,49 @@ def held_off_support(constraints: LinearConstraints, support) -> LinearConstrain
     )  # fmt: skip
 
 
+def scaled_fit(
+    theta, y, delta, constraints: LinearConstraints, *, method: str = "admm", solver=None,
+    warm_start=None,
+):  # fmt: skip
+    """The unpenalised fit of ``y`` (m, n) on ``theta`` (m, p) under ``constraints``
+    with each equation's loss on the scale of its ``delta`` (n,):
+    ``sum_k H_1(r_k / delta_k) = sum_k H_{delta_k}(r_k) / delta_k^2`` (see the module
+    docstring), solved by :func:`robust_sindy.fit` on the targets and coefficients
+    divided by ``delta_k`` (the constraints' rows rescaled to match), from
+    ``warm_start`` (p, n; the fast path's).  Returns ``(coef, result)``: the
+    coefficients in the units of ``y``, and the :class:`~robust_sindy.FitResult` of the
+    rescaled problem with its coefficients, per-equation objectives (``H_{delta_k}``
+    losses), thresholds and dual (``psi_{delta_k}(r_k)``) back in those units; its
+    certificate is that of the problem solved."""
+    n = y.shape[1]
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (n,))
+    # xi_k = delta_k xi'_k: the rows act on the rescaled coefficients through delta.
+    unit = np.repeat(delta, theta.shape[1])
+    scaled = LinearConstraints(
+        theta.shape[1], n, constraints.A_eq * unit, constraints.b_eq,
+        constraints.A_ub * unit, constraints.b_ub,
+    )  # fmt: skip
+    method = method if method in ("admm", "cvxpy") else "admm"
+    options = {}
+    if method == "admm" and warm_start is not None:
+        options["warm_start"] = np.asarray(warm_start, dtype=float) / delta
+    result = fit(
+        theta, y / delta, method=method, delta=1.0, lam=0.0,
+        solver=solver if method == "cvxpy" else None, constraints=scaled, **options,
+    )  # fmt: skip
+    result = replace(
+        result, coef=result.coef * delta, objective=result.objective * delta**2,
+        delta=delta.copy(), dual=None if result.dual is None else result.dual * delta,
+    )  # fmt: skip
+    return result.coef, result
+
+
 def _refit(
     kept: Problem, support, delta, constraints: LinearConstraints, method, solver, start=None
 ):  # fmt: skip
-    """The unpenalised constrained fit on ``support`` (p, n), solved on the columns some
-    equation uses (the others are zero), from ``start`` (p, n; the fast path's warm
-    start).  Returns ``(coef, result)``."""
+    """:func:`scaled_fit` on ``support`` (p, n), on the columns some equation uses
+    (every other coefficient is zero), from ``start`` (p, n).  Returns
+    ``(coef, result)``."""
     p, n = support.shape
     cols = np.flatnonzero(support.any(axis=1))
     coef = np.zeros((p, n))
@@ -205,15 +305,11 @@ def _refit(
     sub = LinearConstraints(
         cols.size, n, held.A_eq[rows][:, idx], held.b_eq[rows], held.A_ub[:, idx], held.b_ub,
     )  # fmt: skip
-    method = method if method in ("admm", "cvxpy") else "admm"
-    options = {}
-    if method == "admm" and start is not None:
-        options["warm_start"] = np.where(support[cols], np.asarray(start)[cols], 0.0)
-    result = fit(
-        kept.theta[:, cols], kept.y, method=method, delta=delta, lam=0.0,
-        solver=solver if method == "cvxpy" else None, constraints=sub, **options,
-    )  # fmt: skip
-    coef[cols] = np.where(support[cols], result.coef, 0.0)
+    warm = None if start is None else np.where(support[cols], np.asarray(start)[cols], 0.0)
+    fitted, result = scaled_fit(
+        kept.theta[:, cols], kept.y, delta, sub, method=method, solver=solver, warm_start=warm
+    )
+    coef[cols] = np.where(support[cols], fitted, 0.0)
     return coef, result
 
 
@@ -225,11 +321,14 @@ def _outcome(coef, support, constraints, result, **extra) -> ConstrainedRefit:
 
 
 def constrained_selection(
-    kept: Problem, coef, delta, constraints: LinearConstraints, *, method: str, solver=None
-) -> ConstrainedRefit:
+    kept: Problem, coef, delta, constraints: LinearConstraints, *, method: str, solver=None,
+    bar: float | None = None,
+) -> ConstrainedRefit:  # fmt: skip
     """The support with the best summed criterion under ``constraints``, from the
     unconstrained selection ``coef`` (p, n) with its tied terms, by adding or removing
-    one group of tied coefficients at a time (see the module docstring)."""
+    one group of tied coefficients at a time; with ``bar``, then without the terms the
+    data do not vouch for under the constraints (``_prune``; see the module
+    docstring)."""
     p, n = np.shape(coef)
     m = kept.theta.shape[0]
     delta = np.broadcast_to(np.asarray(delta, dtype=float), (n,)).copy()
@@ -276,7 +375,7 @@ def constrained_selection(
                 np.sum(bic_from_loss(loss, support.sum(axis=0), sigma, penalty, tau))
                 - tied * penalty.mean()
             )
-            cache[key] = (value, refit, result)
+            cache[key] = (value, refit, result, support)
         return cache[key][0]
 
     current, best = start, score(start, full)
@@ -307,11 +406,145 @@ def constrained_selection(
         for j in g
     ]  # fmt: skip
     descend(lambda now: [now & ~one for one in tied if (now & one).any()])
-    _, refit, result = cache[current.tobytes()]
+    pruned = np.full((p, n), np.nan)
+    value = best
+    if bar is not None:
+
+        def significance(support):
+            _, refit, _, _ = cache[support.tobytes()]
+            on = support & ~held_at_zero(constraints, support)
+            found = ConstrainedRefit(refit, on, 0.0, True, delta=delta)
+            return constrained_significance(kept, found, constraints), on
+
+        def trial(support):
+            value = score(support, cache[current.tobytes()][1])
+            return value, *significance(support)
+
+        current, pruned = _prune(current, (value, *significance(current)), trial, bar)
+    value, refit, result, _ = cache[current.tobytes()]
+    candidates = np.array([
+        np.where(held_at_zero(constraints, s), 0.0, c) for _, c, _, s in cache.values()
+    ])  # fmt: skip
     return _outcome(
-        refit, current, constraints, result, start=start, score=best, evaluated=len(cache),
-        delta=delta,
+        refit, current, constraints, result, start=start, score=value, evaluated=len(cache),
+        delta=delta, candidates=candidates, scores=np.array([v[0] for v in cache.values()]),
+        chosen=list(cache).index(current.tobytes()), pruned=pruned,
     )  # fmt: skip
+
+
+def _prune(current, at, trial, bar):
+    """The significance rounds of the unconstrained selection
+    (:func:`robust_sindy.selection.final.prune`) under the constraints: the selected
+    coefficient with the smallest robust t (:func:`constrained_significance`) is left
+    out while it is below ``bar``, one at a time over all equations (a constraint may
+    tie it to others, which then go with it), in equations with a coefficient at
+    ``SIGNIFICANCE_ESTIMATED`` or more, and only where the criterion does not prefer
+    keeping it by ``MIN_BIC_MARGIN`` or more: the data vouch for the term by neither
+    measure.  A drop after which its equation has no coefficient at
+    ``SIGNIFICANCE_ESTIMATED`` is undone.  A term kept against the statistic stays
+    in the model, and the warnings on its significance say so.  ``at = (score, t, on)``:
+    the criterion, the statistic and the support (without the coefficients the
+    constraints hold at zero) of ``current``; ``trial(support)`` refits a support and
+    returns the same.  Returns the support and the t of each coefficient left out (NaN
+    elsewhere)."""
+    value, t, on = at
+    pruned = np.full(t.shape, np.nan)
+    kept = np.zeros(t.shape, dtype=bool)
+
+    def vouched(t, on):
+        # A coefficient the constraints fix (t = inf) is not the data's evidence.
+        seen = np.where(on & np.isfinite(t), t, 0.0)
+        return seen.max(axis=0) >= SIGNIFICANCE_ESTIMATED
+
+    for _ in range(int(on.sum())):
+        low = on & ~kept & (np.nan_to_num(t, nan=np.inf) < bar) & vouched(t, on)[None, :]
+        if not low.any():
+            break
+        j, k = np.unravel_index(np.argmin(np.where(low, t, np.inf)), t.shape)
+        support = current.copy()
+        support[j, k] = False
+        value_new, t_new, on_new = trial(support)
+        if value_new - value >= MIN_BIC_MARGIN or not vouched(t_new, on_new)[k]:
+            kept[j, k] = True
+            continue
+        gone = on & ~on_new
+        pruned[gone] = t[gone]
+        current, value, t, on = support, value_new, t_new, on_new
+    return current, pruned
+
+
+def constrained_significance(
+    kept: Problem, found: ConstrainedRefit, constraints: LinearConstraints
+) -> np.ndarray:
+    """Robust t statistic (p, n) of every coefficient of ``found`` under
+    ``constraints`` (NaN off the support): the sandwich covariance of
+    :func:`~robust_sindy.selection.significance.robust_t` taken over the selected
+    coefficients of all equations at once, in the directions the equalities and the
+    active inequalities leave free.
+
+    With ``beta`` the selected coefficients and ``Z`` a basis of the null space of those
+    rows restricted to them, ``V = Z (Z^T H Z)^{-1} Z^T B Z (Z^T H Z)^{-1} Z^T``: ``H``
+    is block diagonal (each equation's inliers), ``B`` holds the scores'
+    cross-products within and across equations (the same sample's errors reach every
+    equation), each block scaled by ``sqrt(tau_j tau_k)``, the correlation times of the
+    two equations' scores.  A coefficient the constraints fix (no free direction moves
+    it) has zero variance and the statistic ``inf``: the constraint, not the data,
+    vouches for it.  Where the selected columns are rank deficient on the inliers in the
+    free directions the statistic is 0."""
+    support = np.asarray(found.support, dtype=bool)
+    p, n = support.shape
+    out = np.full(p * n, np.nan)
+    on = np.flatnonzero(support.ravel(order="F"))
+    if on.size == 0:
+        return out.reshape(p, n, order="F")
+    scaler = kept.scaler
+    coef = scaler.coef_to_standard(found.coef)
+    theta, delta = kept.theta_s, kept.delta_standard(found.delta)
+    r = kept.y_s - theta @ coef
+    psi = huber_psi(r, delta)
+    tau = correlation_time(psi, kept.segments)
+    eq, term = on // p, on % p
+    # The objective the search minimises, sum_k H_1(r_k / delta_k): its scores and
+    # curvature per equation carry 1 / delta_k^2.
+    scores = theta[:, term] * (psi / delta**2)[:, eq]
+    b = (scores.T @ scores) * np.sqrt(np.outer(tau[eq], tau[eq]))
+    h = np.zeros((on.size, on.size))
+    for k in np.unique(eq):
+        q = np.flatnonzero(eq == k)
+        a = theta[np.abs(r[:, k]) <= delta[k]][:, term[q]]
+        h[np.ix_(q, q)] = a.T @ a / delta[k] ** 2
+    # The rows that bind the selected coefficients, in the standardised units: an
+    # equality, or an inequality met with equality.
+    x = np.asarray(found.coef, dtype=float).ravel(order="F")
+    size = np.abs(x).max(initial=0.0)
+    slack = np.abs(constraints.A_ub @ x - constraints.b_ub)
+    active = slack <= ACTIVE_TOL * np.maximum(
+        np.abs(constraints.A_ub).sum(axis=1) * size, np.abs(constraints.b_ub)
+    )
+    rows = np.vstack([constraints.A_eq, constraints.A_ub[active]])
+    unit = (scaler.y_scale[None, :] / scaler.theta_scale[:, None]).ravel(order="F")
+    rows = rows[:, on] * unit[on]
+    rows = rows[np.abs(rows).sum(axis=1) > 0]
+    free = scipy.linalg.null_space(rows) if rows.shape[0] else np.eye(on.size)
+    if free.shape[1] == 0:
+        out[on] = np.inf
+        return out.reshape(p, n, order="F")
+    hz = free.T @ h @ free
+    try:
+        factor = np.linalg.cholesky(hz)
+    except np.linalg.LinAlgError:
+        out[on] = 0.0
+        return out.reshape(p, n, order="F")
+    half = np.linalg.solve(factor, free.T)  # L^{-1} Z^T: V = half^T half B half^T half
+    g = half.T @ half
+    var = np.einsum("ij,jk,ki->i", g, b, g)
+    # Rounding leaves a fixed coefficient a variance of order eps times the others'.
+    fixed = np.linalg.norm(free, axis=1) <= 1e-10
+    beta = np.abs(coef.ravel(order="F")[on])
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t = beta / np.sqrt(np.maximum(var, 0.0))
+    out[on] = np.where(fixed, np.inf, np.where(var > 0, t, np.inf))
+    return out.reshape(p, n, order="F")
 
 
 def constrained_stability(
