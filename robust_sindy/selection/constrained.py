@@ -449,7 +449,7 @@ def _prune(current, at, trial, bar):
     elsewhere)."""
     value, t, on = at
     pruned = np.full(t.shape, np.nan)
-    kept = np.zeros(t.shape, dtype=bool)
+    spared = np.zeros(t.shape, dtype=bool)  # kept by the criterion's guard
 
     def vouched(t, on):
         # A coefficient the constraints fix (t = inf) is not the data's evidence.
@@ -457,7 +457,7 @@ def _prune(current, at, trial, bar):
         return seen.max(axis=0) >= SIGNIFICANCE_ESTIMATED
 
     for _ in range(int(on.sum())):
-        low = on & ~kept & (np.nan_to_num(t, nan=np.inf) < bar) & vouched(t, on)[None, :]
+        low = on & ~spared & (np.nan_to_num(t, nan=np.inf) < bar) & vouched(t, on)[None, :]
         if not low.any():
             break
         j, k = np.unravel_index(np.argmin(np.where(low, t, np.inf)), t.shape)
@@ -465,7 +465,7 @@ def _prune(current, at, trial, bar):
         support[j, k] = False
         value_new, t_new, on_new = trial(support)
         if value_new - value >= MIN_BIC_MARGIN or not vouched(t_new, on_new)[k]:
-            kept[j, k] = True
+            spared[j, k] = True
             continue
         gone = on & ~on_new
         pruned[gone] = t[gone]
