@@ -146,6 +146,16 @@ class LinearConstraints:
             used |= (a != 0).any(axis=0)
         return used.reshape(self.shape, order="F")
 
+    def active(self, coef) -> np.ndarray:
+        """Boolean (r_ub,): the inequalities that ``coef`` (p, n) meets with equality (or
+        violates), within :data:`ACTIVE_TOL` of ``max(||a||_1 max|x|, |b|)``."""
+        x = np.asarray(coef, dtype=float).ravel(order="F")
+        slack = self.b_ub - self.A_ub @ x
+        scale = np.maximum(
+            np.abs(self.A_ub).sum(axis=1) * np.abs(x).max(initial=0.0), np.abs(self.b_ub)
+        )
+        return slack <= ACTIVE_TOL * np.maximum(scale, np.finfo(float).tiny)
+
     def residual(self, coef) -> float:
         """The largest relative violation of a constraint by ``coef`` (p, n): for each
         row, ``|a x - b|`` (equalities) or ``max(a x - b, 0)`` (inequalities) over
@@ -280,12 +290,7 @@ def constrained_certificate(
     norms = column_norms(theta)
     cert = certify(theta, y, xi, delta, lam, norms)
     c_eq, c_ub = constraints.A_eq, constraints.A_ub
-    x = xi.ravel(order="F")
-    slack = constraints.b_ub - c_ub @ x
-    scale_ub = np.maximum(
-        np.abs(c_ub).sum(axis=1) * np.abs(x).max(initial=0.0), np.abs(constraints.b_ub)
-    )
-    active = slack <= ACTIVE_TOL * np.maximum(scale_ub, np.finfo(float).tiny)
+    active = constraints.active(xi)
     given = nu is not None and mu is not None
     nu0 = np.zeros(c_eq.shape[0]) if nu is None else np.asarray(nu, dtype=float)
     mu0 = np.zeros(c_ub.shape[0]) if mu is None else np.asarray(mu, dtype=float)

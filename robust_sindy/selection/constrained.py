@@ -56,14 +56,14 @@ import scipy.linalg
 import scipy.sparse
 import scipy.sparse.csgraph
 
-from ..core.constraints import ACTIVE_TOL, LinearConstraints
+from ..core.constraints import LinearConstraints
 from ..core.losses import huber, huber_psi
 from ..core.scaling import fitted_scale_factor, robust_scale
 from ..core.statistics import correlation_time
 from ..fitting import HUBER_EFFICIENCY_CONSTANT, delta_floor, fit
 from .criteria import MIN_BIC_MARGIN, bic_from_loss, bic_terms, blocked_folds, score_margin
 from .problem import Problem
-from .significance import SIGNIFICANCE_ESTIMATED
+from .significance import SIGNIFICANCE_ESTIMATED, sandwich_variance
 
 __all__ = [
     "ConstrainedRefit",
@@ -406,8 +406,7 @@ def constrained_selection(
         for j in g
     ]  # fmt: skip
     descend(lambda now: [now & ~one for one in tied if (now & one).any()])
-    pruned = np.full((p, n), np.nan)
-    value = best
+    pruned, value = None, best
     if bar is not None:
 
         def significance(support):
@@ -515,13 +514,7 @@ def constrained_significance(
         h[np.ix_(q, q)] = a.T @ a / delta[k] ** 2
     # The rows that bind the selected coefficients, in the standardised units: an
     # equality, or an inequality met with equality.
-    x = np.asarray(found.coef, dtype=float).ravel(order="F")
-    size = np.abs(x).max(initial=0.0)
-    slack = np.abs(constraints.A_ub @ x - constraints.b_ub)
-    active = slack <= ACTIVE_TOL * np.maximum(
-        np.abs(constraints.A_ub).sum(axis=1) * size, np.abs(constraints.b_ub)
-    )
-    rows = np.vstack([constraints.A_eq, constraints.A_ub[active]])
+    rows = np.vstack([constraints.A_eq, constraints.A_ub[constraints.active(found.coef)]])
     unit = (scaler.y_scale[None, :] / scaler.theta_scale[:, None]).ravel(order="F")
     rows = rows[:, on] * unit[on]
     rows = rows[np.abs(rows).sum(axis=1) > 0]
@@ -529,15 +522,10 @@ def constrained_significance(
     if free.shape[1] == 0:
         out[on] = np.inf
         return out.reshape(p, n, order="F")
-    hz = free.T @ h @ free
-    try:
-        factor = np.linalg.cholesky(hz)
-    except np.linalg.LinAlgError:
+    var = sandwich_variance(h, b, free)
+    if var is None:
         out[on] = 0.0
         return out.reshape(p, n, order="F")
-    half = np.linalg.solve(factor, free.T)  # L^{-1} Z^T: V = half^T half B half^T half
-    g = half.T @ half
-    var = np.einsum("ij,jk,ki->i", g, b, g)
     # Rounding leaves a fixed coefficient a variance of order eps times the others'.
     fixed = np.linalg.norm(free, axis=1) <= 1e-10
     beta = np.abs(coef.ravel(order="F")[on])

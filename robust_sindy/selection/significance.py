@@ -23,7 +23,7 @@ from ..core.losses import huber_psi
 from ..core.statistics import correlation_time
 from ..core.validation import check_problem
 
-__all__ = ["SIGNIFICANCE", "SIGNIFICANCE_ESTIMATED", "VISIBLE", "robust_t"]
+__all__ = ["SIGNIFICANCE", "SIGNIFICANCE_ESTIMATED", "VISIBLE", "robust_t", "sandwich_variance"]
 
 #: Robust t statistic below which a term under the noise floor is not vouched for:
 #: five standard errors, the conventional threshold for a discovery when the error
@@ -43,6 +43,20 @@ SIGNIFICANCE_ESTIMATED = 10.0
 #: derivatives) are dropped one at a time; a dropped term that reached this level may
 #: be real, and a warning says so.
 VISIBLE = 2.0
+
+
+def sandwich_variance(h, b, basis=None) -> np.ndarray | None:
+    """The diagonal of ``V = Z (Z^T H Z)^{-1} Z^T B Z (Z^T H Z)^{-1} Z^T``, the sandwich
+    covariance of coefficients free to move along the columns of ``basis`` (``Z``;
+    the identity when None); None where ``Z^T H Z`` is not positive definite."""
+    zt = np.eye(h.shape[0]) if basis is None else np.asarray(basis).T
+    try:
+        factor = np.linalg.cholesky(h if basis is None else zt @ h @ zt.T)
+    except np.linalg.LinAlgError:
+        return None
+    half = np.linalg.solve(factor, zt)
+    g = half.T @ half
+    return np.einsum("ij,jk,ki->i", g, b, g)
 
 
 def robust_t(theta, xdot, coef, delta, segments=None) -> np.ndarray:
@@ -69,14 +83,10 @@ def robust_t(theta, xdot, coef, delta, segments=None) -> np.ndarray:
         inl = np.abs(r) <= delta[k]
         h = a[inl].T @ a[inl]
         b = tau * (a * psi[:, None] ** 2).T @ a
-        try:
-            factor = np.linalg.cholesky(h)
-        except np.linalg.LinAlgError:
+        var = sandwich_variance(h, b)
+        if var is None:
             out[sel, k] = 0.0
             continue
-        half = np.linalg.solve(factor, np.eye(sel.size))
-        hinv = half.T @ half
-        var = np.einsum("ij,jk,ki->i", hinv, b, hinv)
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.abs(coef[sel, k]) / np.sqrt(var)
         out[sel, k] = np.where(var > 0, t, np.inf)
