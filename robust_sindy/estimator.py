@@ -499,6 +499,7 @@ class HuberSINDy(BaseEstimator):
             kept, floor.design, self.delta, self.lam, criterion=self.criterion,
             n_lams=self.n_lams, selection_tol=self.selection_tol, method=self.method,
             solver=self.solver, progress=self.progress, options=options,
+            start=None if rows.screening is None else rows.screening.pilot,
         )  # fmt: skip
         fitted = fit_chosen(
             kept, choice, method=self.method, solver=self.solver, options=options,

@@ -243,11 +243,18 @@ class PolynomialLibrary(BaseLibrary):
 
     def transform(self, x) -> np.ndarray:
         x = self._check_transform_input(x)
-        out = np.ones((x.shape[0], self.n_output_features_))
+        # Each monomial is formed as a contiguous row of the transpose (a column of a
+        # row-major array is strided), the factors multiplied in the order of its powers.
+        inputs = np.ascontiguousarray(x.T)
+        out = np.empty((self.n_output_features_, x.shape[0]))
         for j, combo in enumerate(self.powers_):
-            for i in combo:
-                out[:, j] *= x[:, i]
-        return out
+            if not combo:
+                out[j] = 1.0
+                continue
+            out[j] = inputs[combo[0]]
+            for i in combo[1:]:
+                out[j] *= inputs[i]
+        return np.ascontiguousarray(out.T)
 
     def get_feature_names(self, input_names=None) -> list[str]:
         self._check_fitted()

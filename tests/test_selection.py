@@ -369,6 +369,26 @@ def test_a_start_that_left_out_exactly_the_outliers_is_stable_after_one_pilot():
     assert again.converged and again.rounds == 1
 
 
+@pytest.mark.parametrize("seed", [0, 1])
+def test_the_last_pilot_is_the_unpenalised_fit_of_the_kept_samples_at_its_delta(seed):
+    # The screen hands on its last pilot as a start for the next choice of delta on the
+    # samples kept: converged, that pilot was fitted on exactly those samples, and
+    # delta's iteration (which stops at a relative change of 1e-2) leaves its delta
+    # where it was.
+    theta, noisy, _ = _lorenz_problem(seed)
+    s = screen_rows(theta, noisy.x_dot)
+    assert s.converged
+    delta, coef = s.pilot
+    keep = ~s.outliers
+    ref = rs.fit(theta[keep], noisy.x_dot[keep], "cvxpy", delta, 0.0)
+    scale = np.abs(ref.coef).max(axis=0)
+    assert np.all(np.abs(coef - ref.coef).max(axis=0) <= 1e-4 * scale)
+    cold = auto_delta(theta[keep], noisy.x_dot[keep])
+    started = auto_delta(theta[keep], noisy.x_dot[keep], start=s.pilot)
+    assert np.all(np.abs(started - delta) <= 0.02 * delta)
+    assert np.all(np.abs(cold - delta) <= 0.05 * delta)
+
+
 def test_leverage_corrected_residuals_deleted_for_suspect_samples():
     # One state of one sample off by 2.5 (5 times its amplitude) puts that sample far
     # out in a cubic library, where a fit with ten coefficients has nothing else to go

@@ -38,6 +38,29 @@ def test_best_subsets_are_the_brute_force_best_of_each_size(seed):
         assert found == [s for _, s in truth[: len(found)]]
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_a_shared_gram_matrix_and_the_single_terms_give_the_brute_force_best(seed):
+    # Huber weights (most rows at 1): the weighted Gram matrix formed from the shared
+    # unweighted one by the down-weighted rows, and single terms from its diagonal only.
+    rng = np.random.default_rng(seed)
+    theta = rng.normal(size=(80, 6)) @ (np.eye(6) + 0.6 * rng.normal(size=(6, 6)))
+    theta[:, 4] = 0.0  # an aliased term: in no support, not in the shared matrix
+    y = theta @ (rng.normal(size=6) * (rng.random(6) < 0.5)) + rng.normal(size=80)
+    w = np.minimum(1.0, 0.8 / np.abs(rng.standard_t(3, size=80)))
+    pool = np.flatnonzero(np.any(theta != 0, axis=0))
+    gram = theta[:, pool].T @ theta[:, pool]
+    masks, largest = best_subsets(theta, y, w, per_size=2, gram=gram)
+    single, one = best_subsets(theta, y, w, per_size=2, max_size=1)
+    assert largest == 5 and one == 1
+    assert [set(np.flatnonzero(mk)) for mk in single] == [
+        set(np.flatnonzero(mk)) for mk in masks if mk.sum() == 1
+    ]
+    for size in range(1, 6):
+        found = [set(np.flatnonzero(mk).tolist()) for mk in masks if mk.sum() == size]
+        truth = _brute_force(theta[:, pool], y, w, size)
+        assert found == [{int(pool[j]) for j in s} for _, s in truth[: len(found)]]
+
+
 def test_the_budget_bounds_the_sizes_and_zero_columns_are_left_out():
     assert subset_sizes(20, 200_000) == 7  # 137,979 supports of 1 to 7 terms
     assert sum(math.comb(20, s) for s in range(1, 9)) > 200_000

@@ -130,25 +130,34 @@ def choose_delta_lam(
     solver: str | None,
     progress: bool,
     options: dict,
+    start=None,
 ) -> Choice:
     """``delta`` and ``lam``: chosen on the standardised ``design`` (``"auto"``) or the
     values given.  With ``lam="auto"``, terms under the noise floor are proposed
     (``selection_tol`` is the threshold given, not the floor): the final selection keeps
-    those the data vouch for."""
+    those the data vouch for.  ``start``, the standardised ``(delta, coef)`` of a pilot
+    on nearly the same samples (the row screen's last,
+    :attr:`~robust_sindy.selection.Screening.pilot`), starts
+    the choice of ``delta`` (:func:`~robust_sindy.fitting.auto_delta`)."""
     scaler = kept.scaler
     y_s = kept.y_s
     pilot = huber_method(method)
     auto = isinstance(delta, str) and delta == "auto"
+    if start is not None:  # no weight on the columns the design leaves out (aliases)
+        start = (start[0], np.where(design.any(axis=0)[:, None], start[1], 0.0))
     if not (isinstance(lam, str) and lam == "auto"):
         delta_u = (
-            np.atleast_1d(auto_delta(design, y_s, method=pilot, **pilot_budget(pilot)))
+            np.atleast_1d(auto_delta(design, y_s, method=pilot, start=start, **pilot_budget(pilot)))
             * scaler.y_scale
             if auto
             else delta
         )
         return Choice(delta_u, lam, None, None, None)
+    dense = None  # a pilot on every term at nearly delta: the start of that refit
     if auto:
-        delta_s = auto_delta(design, y_s, method=pilot, **pilot_budget(pilot))
+        delta_s, dense = auto_delta(
+            design, y_s, method=pilot, start=start, return_coef=True, **pilot_budget(pilot)
+        )
     else:
         delta_s = per_column(delta, "delta", y_s.shape[1], positive=True) / scaler.y_scale
     sel = select(
@@ -162,6 +171,7 @@ def choose_delta_lam(
         method=method,
         solver=solver,
         progress=progress,
+        dense_start=dense,
         **options,
     )
     cols = np.arange(y_s.shape[1])

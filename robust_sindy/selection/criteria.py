@@ -15,7 +15,7 @@ from ..core.validation import check_int, check_problem, loss_delta
 from ..fitting import HUBER_EFFICIENCY_CONSTANT, ConvergenceWarning, auto_delta, check_huber_method
 from .lam_path import Path, path, pilot_budget
 from .refit import STAGE_ROUNDS, refit_column, select_column
-from .subsets import best_subsets
+from .subsets import best_subsets, subset_sizes
 
 __all__ = [
     "CRITERIA",
@@ -176,22 +176,28 @@ class Selection:
 
 class _Stage:
     """The selection stage of each column, its refits shared between identical supports
-    (``caches``: one dict per column, support to refit)."""
+    (``caches``: one dict per column, support to refit).  ``dense_start`` (p, n), when
+    given, starts the fast path's refit on every nonzero column of ``theta``."""
 
-    def __init__(self, theta, y, delta, tol, method, solver, options):
+    def __init__(self, theta, y, delta, tol, method, solver, options, dense_start=None):
         self.theta, self.y, self.delta, self.tol = theta, y, delta, tol
         self.method, self.solver, self.options = method, solver, options
         self.caches: list[dict] = [{} for _ in range(y.shape[1])]
         self.col = np.linalg.norm(theta, axis=0)
         self.ynorm = np.linalg.norm(y, axis=0)
+        self.every = np.any(theta != 0, axis=0)
+        self.dense_start = dense_start if method == "admm" else None
 
     def refit(self, k, keep):
         """Column ``k``'s unpenalised Huber refit on the terms ``keep``."""
         key = keep.tobytes()
         if key not in self.caches[k]:
+            options = self.options
+            if self.dense_start is not None and np.array_equal(keep, self.every):
+                options = {**options, "warm_start": self.dense_start[keep, k]}
             self.caches[k][key] = refit_column(
                 self.theta, self.y[:, k], keep, self.delta[k], self.method, self.solver,
-                self.options,
+                options,
             )  # fmt: skip
         return self.caches[k][key]
 
@@ -233,7 +239,7 @@ class _Walk:
     def __init__(self, stage: _Stage, n_points: int):
         theta, y = stage.theta, stage.y
         p, n = theta.shape[1], y.shape[1]
-        every = np.any(theta != 0, axis=0)
+        every = stage.every
         self.stage = stage
         self.limit = np.stack([stage.column(k, stage.refit(k, every)) for k in range(n)], 1)
         self.candidates = np.zeros((n_points, p, n))
@@ -314,6 +320,8 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
     every = np.any(theta != 0, axis=0)
     whole_library = theta[:, every]
     basis = np.linalg.qr(whole_library)[0]  # shared by every equation's floor
+    # Shared by every equation's search of pairs and beyond (single terms need less).
+    gram = whole_library.T @ whole_library if subset_sizes(whole_library.shape[1]) > 1 else None
     found, sizes = {}, np.zeros(n, dtype=int)
     for k in range(n):
         r = np.abs(y[:, k] - theta @ reference[:, k])
@@ -330,7 +338,7 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
         top = best[k]
         # Sizes whose penalty alone takes them past the best score are not searched.
         reach = np.ceil((top - floor) / penalty[k]) - 1 if np.isfinite(top) else p
-        masks, sizes[k] = best_subsets(theta, y[:, k], weights, max_size=reach)
+        masks, sizes[k] = best_subsets(theta, y[:, k], weights, max_size=reach, gram=gram)
         found[k] = []
         for mask in masks:
             if bic(whole, mask.sum()) >= top:
@@ -465,6 +473,7 @@ def select(
     solver: str | None = None,
     progress: bool = False,
     subsets: bool = True,
+    dense_start=None,
     **options,
 ) -> Selection:
     """Choose ``lam`` per equation: path, selection stage, then a robust criterion.
@@ -522,6 +531,10 @@ def select(
         With ``criterion="bic"``, add the best-subset candidates of every size up to
         the one :data:`robust_sindy.selection.subsets.SUBSET_BUDGET` allows
         (``Selection.subsets``).
+    dense_start : array_like (p, n), optional
+        Coefficients near the unpenalised fit on every term at ``delta`` (a pilot's,
+        e.g. from :func:`~robust_sindy.fitting.auto_delta` with ``return_coef``): the
+        fast path's start for that refit (the limit of the path's proposals).
     **options
         Solver options (see :func:`robust_sindy.fit`).
 
@@ -559,7 +572,9 @@ def select(
     # beyond delta, and such near-LAD fits are the slowest to certify; they get the
     # path's budget (the refit of the support finally chosen is certified by the caller:
     # HuberSINDy refits it with the full budget).
-    stage = _Stage(theta, y, delta_k, tol, method, solver, path_options)
+    if dense_start is not None:
+        dense_start = np.asarray(dense_start, dtype=float).reshape(theta.shape[1], y.shape[1])
+    stage = _Stage(theta, y, delta_k, tol, method, solver, path_options, dense_start)
     walk = _Walk(stage, n_lams) if criterion == "bic" else None
     with warnings.catch_warnings():
         # Uncertified path points only propose supports; the refits of the selection

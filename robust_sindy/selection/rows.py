@@ -11,6 +11,7 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import numpy as np
 import scipy.linalg
@@ -99,6 +100,11 @@ class Screening:
         replaced the one from ``start`` (step 4 of :func:`screen_rows`).
     swapped : ndarray of bool (m,)
         Samples kept with their ``alternative`` row (step 5 of :func:`screen_rows`).
+    pilot : tuple (delta (n,), coef (p, n)) or None
+        The threshold and coefficients of the last pilot (unpenalised, in the units of
+        ``theta`` and ``xdot``): fitted on the samples kept when ``converged``, a start
+        for another choice of ``delta`` on them
+        (:func:`~robust_sindy.fitting.auto_delta`).
     """
 
     outliers: np.ndarray
@@ -109,6 +115,7 @@ class Screening:
     converged: bool
     restarted: bool = False
     swapped: np.ndarray | None = None
+    pilot: tuple | None = None
 
     def __repr__(self) -> str:
         return (
@@ -246,6 +253,20 @@ def _segment_local_scale(r, segments, half, trusted):
     return out
 
 
+class _Outcome(NamedTuple):
+    """One iteration of the pilots (:meth:`_Pilots.iterate`): the flags, the residual
+    scale per equation, the rounds, whether the flags settled, and the last pilot's
+    residuals (m, n), coefficients (p, n) and ``delta`` (n,)."""
+
+    flags: np.ndarray
+    scale: np.ndarray
+    rounds: int
+    converged: bool
+    residuals: np.ndarray
+    coef: np.ndarray
+    delta: np.ndarray
+
+
 class _Pilots:
     """The unpenalised Huber pilots of :func:`screen_rows` and the iterations over them,
     on ``theta`` (m, p) and ``y`` (m, n), started from the samples ``first``."""
@@ -318,17 +339,19 @@ class _Pilots:
         """Each sample's largest residual over ``cutoff`` times its bound (> 1: gross)."""
         return gross_ratio(r, self.bound_of(r, scale, coef), self.cutoff)
 
-    def iterate(self, keep):
+    def iterate(self, keep, start=None) -> _Outcome:
         """Refit on the samples kept until the flags are stable (after the free rounds,
         or once the flags repeat an earlier round's, flags are only added: no
         oscillation).  The pilot is a function of the samples kept, so flags that repeat
         an earlier round's cycle for ever; they become the union of the cycle at once,
         and flags that leave out exactly the samples ``keep`` left out are stable at
-        once (the next pilot would be the same fit)."""
+        once (the next pilot would be the same fit).  ``start``, the ``(delta, coef)``
+        of a pilot on nearly the same problem, starts the first round's choice of
+        ``delta``; each later round starts from the round before."""
         p = self.theta.shape[1]
         flags, converged, done, scale = ~keep, False, 0, np.zeros(self.y.shape[1])
         history: list[np.ndarray] = []
-        monotone, start = False, None
+        monotone = False
         for done in range(1, self.rounds + 1):
             # From the second round on, delta's iteration starts from the last pilot's.
             coef, r, delta = self.pilot(keep, start)
@@ -354,7 +377,7 @@ class _Pilots:
             keep = ~flags
             if keep.sum() <= p:
                 break
-        return flags, scale, done, converged, r, coef
+        return _Outcome(flags, scale, done, converged, r, coef, delta)
 
     def forward(self, keep, scale0):
         """Forward search: grow the kept set from ``keep`` by the excluded samples with
@@ -513,7 +536,7 @@ def screen_rows(
     pilots = _Pilots(theta, y, keep, segments, half, noise, cutoff, rounds, method, row_noise)
     first, rms = pilots.first, pilots.rms
     outcome = pilots.iterate(keep)
-    flags, scale, done_rounds, converged, r, coef = outcome
+    flags, scale, r, coef = outcome.flags, outcome.scale, outcome.residuals, outcome.coef
     restarted = False
     if (
         not first.all()
@@ -529,13 +552,13 @@ def screen_rows(
         # pilot bent by gross errors has a larger scale and explains fewer).
         everything = pilots.iterate(np.ones(m, dtype=bool))
         cands = [everything, pilots.iterate(pilots.forward(~flags, scale))]
-        common = np.minimum.reduce([scale] + [c[1] for c in cands])
+        common = np.minimum.reduce([scale] + [c.scale for c in cands])
         # Judged without the local scale of each one's own residuals: a pilot bent by
         # gross errors has large residuals on good samples too, which would raise its
         # local bound everywhere and excuse them.
         bounds = [
             (rr, pilots.bound_of(rr, common, cc, with_local=False))
-            for rr, cc in [(r, coef)] + [(c[4], c[5]) for c in cands]
+            for rr, cc in [(r, coef)] + [(c.residuals, c.coef) for c in cands]
         ]
         explained = [int((gross_ratio(rr, b, cutoff) <= 1).sum()) for rr, b in bounds]
         best = int(np.argmax(explained))
@@ -545,8 +568,10 @@ def screen_rows(
     swapped = np.zeros(m, dtype=bool)
     if alternative is not None:
         outcome, swapped = _second_chance(pilots, outcome, alternative)
-    flags, scale, done_rounds, converged = outcome[:4]
-    return Screening(flags, scale, scale / rms, first, done_rounds, converged, restarted, swapped)
+    return Screening(
+        outcome.flags, outcome.scale, outcome.scale / rms, first, outcome.rounds,
+        outcome.converged, restarted, swapped, (outcome.delta, outcome.coef),
+    )  # fmt: skip
 
 
 def _second_chance(pilots: _Pilots, outcome, alternative):
@@ -555,8 +580,10 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     final pilot was fitted with the samples' own rows, which bend it towards a glitched
     row it kept).  Under it, a flagged sample takes its alternative row when that row is
     not gross, a kept one when that row's residual is the smaller; then the iteration
-    runs again from the samples kept."""
-    flags, scale = outcome[0], outcome[1]
+    runs again from the samples kept.  The judge's choice of ``delta`` starts from the
+    iteration's last pilot, and the iteration's from the judge (pilots on nearly the
+    same samples and rows)."""
+    flags, scale = outcome.flags, outcome.scale
     at, rows = np.asarray(alternative[0], dtype=int), alternative[1]
     swapped = np.zeros(flags.size, dtype=bool)
     if not at.size:
@@ -564,7 +591,7 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     mixed = pilots.theta.copy()
     mixed[at] = rows
     judge = pilots.with_theta(mixed)
-    coef = judge.pilot(~flags)[0]
+    coef, _, delta = judge.pilot(~flags, (outcome.delta, outcome.coef))
     r_alt = pilots.y - mixed @ coef
     r_own = r_alt.copy()
     r_own[at] = pilots.y[at] - pilots.theta[at] @ coef
@@ -577,8 +604,8 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     swapped[at[take]] = True
     theta = pilots.theta.copy()
     theta[at[take]] = rows[take]
-    outcome = pilots.with_theta(theta).iterate(~flags | swapped)
-    return outcome, swapped & ~outcome[0]
+    outcome = pilots.with_theta(theta).iterate(~flags | swapped, (delta, coef))
+    return outcome, swapped & ~outcome.flags
 
 
 @dataclass(frozen=True)

@@ -18,6 +18,8 @@ import math
 
 import numpy as np
 
+from ..solvers.newton import inlier_gram
+
 __all__ = ["SUBSET_BUDGET", "best_subsets", "subset_sizes"]
 
 #: Supports the exhaustive search may rank per equation (all sizes together).
@@ -45,7 +47,14 @@ def subset_sizes(n_terms: int, budget: int = SUBSET_BUDGET) -> int:
 
 
 def best_subsets(
-    theta, y, weights, *, per_size: int = 3, budget: int = SUBSET_BUDGET, max_size=None
+    theta,
+    y,
+    weights,
+    *,
+    per_size: int = 3,
+    budget: int = SUBSET_BUDGET,
+    max_size=None,
+    gram=None,
 ):
     """The ``per_size`` supports of each size with the smallest weighted residual sum
     of squares ``sum_i w_i (y_i - theta_i b_S)^2``, least squares on the columns ``S``.
@@ -54,17 +63,30 @@ def best_subsets(
     columns take part in no support), and at most to ``max_size``.  Returns a list of
     boolean masks over the columns of ``theta``, the best first within each size, and
     the largest size searched.
+
+    ``gram``, the unweighted Gram matrix of the nonzero columns (shared by searches
+    with other weights, ``weights`` in ``[0, 1]``), lets the weighted one be formed
+    from the rows with ``w < 1`` (:func:`~robust_sindy.solvers.newton.inlier_gram`).
+    Single terms need only its diagonal, which is all that is formed when no larger
+    size is searched.
     """
     theta = np.asarray(theta, dtype=float)
     w = np.asarray(weights, dtype=float)
     pool = np.flatnonzero(np.any(theta != 0, axis=0))
     a = theta[:, pool]
-    gram = a.T @ (w[:, None] * a)
     rhs = a.T @ (w * y)
-    diag = np.diag(gram)
     largest = subset_sizes(pool.size, budget)
     if max_size is not None:
         largest = max(0, min(largest, int(max_size)))
+    if largest <= 1:
+        gram = None
+        diag = np.einsum("ij,ij,i->j", a, a, w)
+    elif gram is not None and w.min(initial=1.0) >= 0.0 and w.max(initial=0.0) <= 1.0:
+        gram = inlier_gram(a, np.asarray(gram, dtype=float), w[:, None])[0]
+        diag = np.diag(gram)
+    else:
+        gram = a.T @ (w[:, None] * a)
+        diag = np.diag(gram)
     masks = []
     for s in range(1, largest + 1):
         best_rss = np.empty(0)
@@ -76,7 +98,10 @@ def best_subsets(
             ).reshape(-1, s)
             if chunk.size == 0:
                 break
-            g = gram[chunk[:, :, None], chunk[:, None, :]]
+            if gram is None:  # single terms
+                g = diag[chunk][:, :, None].copy()
+            else:
+                g = gram[chunk[:, :, None], chunk[:, None, :]]
             g[:, np.arange(s), np.arange(s)] += _RIDGE * diag[chunk]
             b = rhs[chunk]
             sol = np.linalg.solve(g, b[..., None])[..., 0]
