@@ -353,7 +353,8 @@ class _Pilots:
         history: list[np.ndarray] = []
         monotone = False
         for done in range(1, self.rounds + 1):
-            # From the second round on, delta's iteration starts from the last pilot's.
+            # Delta's iteration starts from the last pilot's (the first round's from
+            # ``start`` when given, else from least squares).
             coef, r, delta = self.pilot(keep, start)
             start = (delta, coef)
             scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), SCALE_FLOOR * self.rms)
