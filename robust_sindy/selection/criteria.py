@@ -317,7 +317,7 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
     n = y.shape[1]
     # The criterion's own terms: the bounds below are on its scores.
     sigma, penalty = bic_terms(m, delta, tau)
-    every = np.any(theta != 0, axis=0)
+    every = stage.every
     whole_library = theta[:, every]
     basis = np.linalg.qr(whole_library)[0]  # shared by every equation's floor
     # Shared by every equation's search of pairs and beyond (single terms need less).

@@ -99,7 +99,7 @@ def best_subsets(
             if chunk.size == 0:
                 break
             if gram is None:  # single terms
-                g = diag[chunk][:, :, None].copy()
+                g = diag[chunk][:, :, None]  # a new array: the ridge leaves diag alone
             else:
                 g = gram[chunk[:, :, None], chunk[:, None, :]]
             g[:, np.arange(s), np.arange(s)] += _RIDGE * diag[chunk]
