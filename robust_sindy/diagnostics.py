@@ -824,13 +824,18 @@ RULES: tuple[Rule, ...] = (
             "with one of their coefficients changed by more than half) scored within "
             f"{MIN_BIC_MARGIN:g} of the best candidate's {_runner_up_score(d, close)} "
             "(differences "
-            + ", ".join(f"{v:.1f}" for v in d.rival_margin[close])
+            + ", ".join(_one_decimal(v) for v in d.rival_margin[close])
             + "): the data do not strongly prefer the selected terms; compare the "
             + _candidates_where(d)
             + ", and try more data or measured derivatives"
         ),
     ),
 )
+
+
+def _one_decimal(v: float) -> str:
+    """``v`` to one decimal, without the sign of a value that rounds to zero."""
+    return f"{v:.1f}" if round(v, 1) != 0 else "0.0"
 
 
 def _candidates_where(d) -> str:

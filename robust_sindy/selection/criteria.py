@@ -286,6 +286,13 @@ def _settled_scores(theta, y, candidates, used, delta, tau, segments):
     candidates fitted to those errors.  The correlation time only grows, and a
     candidate chosen again leaves it as it is, so this ends within as many rounds as
     there are candidates.
+
+    The choice can settle twice: a candidate fitted to the errors' slow part shortens
+    its own residuals' correlation time and is chosen under it, as a candidate the
+    errors do not reach is under the longer one of its own residuals.  The choice
+    settled from below is the first of them; the correlation time is then raised to the
+    longest of a candidate's own residuals under which that candidate is chosen
+    (:func:`_longest_settled`).
     """
     cols = np.arange(y.shape[1])
     scores = _scores(theta, y, candidates, used, delta, tau)
@@ -296,7 +303,38 @@ def _settled_scores(theta, y, candidates, used, delta, tau, segments):
             break
         tau = new
         scores = _scores(theta, y, candidates, used, delta, tau)
+    longest = _longest_settled(theta, y, candidates, used, delta, tau, segments)
+    if not np.array_equal(longest, tau):
+        tau = longest
+        scores = _scores(theta, y, candidates, used, delta, tau)
     return tau, scores
+
+
+def _longest_settled(theta, y, candidates, used, delta, tau, segments) -> np.ndarray:
+    """Per column, the longest correlation time ``t`` above ``tau`` of a candidate's own
+    residuals under which the BIC (:func:`_scores` with ``t``) chooses that candidate;
+    ``tau`` where there is none."""
+    m = theta.shape[0]
+    out = np.array(tau, dtype=float)
+    for k in range(y.shape[1]):
+        first: dict[bytes, int] = {}  # one candidate per support, the earliest (_pick)
+        for i in np.flatnonzero(used[:, k]):
+            first.setdefault(np.packbits(candidates[i, :, k] != 0).tobytes(), i)
+        rows = np.fromiter(first.values(), dtype=int)
+        if rows.size < 2:
+            continue
+        coef = candidates[rows, :, k]
+        r = y[:, k, None] - theta @ coef.T
+        loss = huber(r, delta[k]).sum(axis=0)
+        size = np.count_nonzero(coef, axis=1)
+        own = correlation_time(huber_psi(r, delta[k]), segments)
+        sigma, _ = bic_terms(m, delta[k : k + 1], tau[k : k + 1])
+        for j in np.flatnonzero(own > tau[k]):
+            t = own[j]
+            score = bic_from_loss(loss, size, sigma[0], np.log(max(m / t, 2.0)), t)
+            if _pick(score[:, None])[0] == j and t > out[k]:
+                out[k] = t
+    return out
 
 
 def _subset_candidates(stage: _Stage, reference, tau, best):
