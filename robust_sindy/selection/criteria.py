@@ -328,12 +328,12 @@ def _longest_settled(theta, y, candidates, used, delta, tau, segments) -> np.nda
         loss = huber(r, delta[k]).sum(axis=0)
         size = np.count_nonzero(coef, axis=1)
         own = correlation_time(huber_psi(r, delta[k]), segments)
-        sigma, _ = bic_terms(m, delta[k : k + 1], tau[k : k + 1])
         for j in np.flatnonzero(own > tau[k]):
-            t = own[j]
-            score = bic_from_loss(loss, size, sigma[0], np.log(max(m / t, 2.0)), t)
-            if _pick(score[:, None])[0] == j and t > out[k]:
-                out[k] = t
+            t = own[j : j + 1]
+            sigma, penalty = bic_terms(m, delta[k : k + 1], t)
+            score = bic_from_loss(loss, size, sigma, penalty, t)
+            if _pick(score[:, None])[0] == j and t[0] > out[k]:
+                out[k] = t[0]
     return out
 
 
