@@ -328,12 +328,14 @@ def _longest_settled(theta, y, candidates, used, delta, tau, segments) -> np.nda
         loss = huber(r, delta[k]).sum(axis=0)
         size = np.count_nonzero(coef, axis=1)
         own = correlation_time(huber_psi(r, delta[k]), segments)
-        for j in np.flatnonzero(own > tau[k]):
-            t = own[j : j + 1]
-            sigma, penalty = bic_terms(m, delta[k : k + 1], t)
-            score = bic_from_loss(loss, size, sigma, penalty, t)
-            if _pick(score[:, None])[0] == j and t[0] > out[k]:
-                out[k] = t[0]
+        longer = np.flatnonzero(own > tau[k])
+        t = own[longer]
+        sigma, penalty = bic_terms(m, np.full(t.size, delta[k]), t)
+        # Every candidate scored under each longer time (columns): which chooses its own.
+        score = bic_from_loss(loss[:, None], size[:, None], sigma, penalty, t)
+        settled = t[_pick(score) == longer]
+        if settled.size:
+            out[k] = settled.max()
     return out
 
 
