@@ -164,6 +164,70 @@ def test_library_guard_keeps_a_window_bias_out_of_the_regression():
         HuberSINDy(derivative_window=7).fit(x, data.t)
 
 
+def test_library_guard_measures_a_window_change_against_its_own_noise():
+    """Without a bias, the guard's statistic is a quadratic form in the change's noise
+    whose mean, the trace of ``cov^-1 noise``, lies well below the number of columns
+    when the regression's errors exceed that noise: against the chi-square of the
+    number of columns, a bias as large as the gap went through.  Measured against the
+    statistic's own distribution, noise alone passes at about the test's level, and a
+    bias in a single direction that the chi-square of the columns let through is
+    caught."""
+    import scipy.stats
+
+    from robust_sindy.timeseries.differentiation import BIAS_LEVEL, _wald_against_noise
+
+    rng = np.random.default_rng(3)
+    p = 60
+    spread = rng.normal(size=(4 * p, p)) / np.sqrt(4 * p)
+    noise = spread.T @ spread
+    errors = rng.normal(size=(4 * p, p)) / np.sqrt(4 * p)
+    cov = noise + 2.0 * errors.T @ errors  # the regression's errors twice the noise
+    root = np.linalg.cholesky(noise)
+    draws = 3000
+    walds, bars = np.empty(draws), np.empty(draws)
+    for i in range(draws):
+        walds[i], bars[i] = _wald_against_noise(root @ rng.normal(size=p), cov, noise)
+    mean = np.trace(np.linalg.solve(cov, noise))
+    assert np.ptp(bars) == 0.0  # the bar depends on the covariances only
+    assert abs(walds.mean() / mean - 1.0) < 0.05
+    assert mean < 0.6 * p  # the case the chi-square of the columns misjudged
+    assert np.mean(walds > bars) < 5 * BIAS_LEVEL
+    # A bias along one direction worth 6 times the spread of the statistic's noise.
+    direction = rng.normal(size=p)
+    direction /= np.sqrt(direction @ np.linalg.solve(cov, direction))
+    size = np.sqrt(6.0 * walds.std())
+    caught = old = 0
+    for _ in range(200):
+        c = root @ rng.normal(size=p) + size * direction
+        wald, bar = _wald_against_noise(c, cov, noise)
+        caught += wald > bar
+        old += wald > scipy.stats.chi2.ppf(1.0 - BIAS_LEVEL, p)
+    assert caught >= 150 and old <= 20, (caught, old)
+    # Unit-free: covariances in other units, the same decisions.
+    wald, bar = _wald_against_noise(1e3 * c, 1e6 * cov, 1e6 * noise)
+    assert np.isclose(wald, _wald_against_noise(c, cov, noise)[0], rtol=1e-8)
+    assert np.isclose(bar, bars[0], rtol=1e-8)
+
+
+def test_library_guard_tests_the_bulk_of_the_rows():
+    """The rows the guard tests are those the library fits within 3.5 robust scales of
+    the signed residuals: a gross error leaves, the Gaussian bulk stays (scaled by the
+    absolute residuals, a fifth of the bulk used to leave over the rounds)."""
+    from robust_sindy.timeseries.differentiation import _fitted_rows
+
+    kept = []
+    for seed in range(5):
+        rng = np.random.default_rng([seed, 11])
+        a = rng.normal(size=(2000, 20))
+        y = a @ rng.normal(size=20) + rng.normal(size=2000)
+        gross = rng.choice(2000, 40, replace=False)
+        y[gross] += 30.0 * rng.choice([-1.0, 1.0], 40)
+        keep = _fitted_rows(a, y, np.ones(2000, dtype=bool))
+        assert not keep[gross].any()
+        kept.append(np.delete(keep, gross).mean())
+    assert min(kept) > 0.99, kept
+
+
 def _hopf(t, z):
     x, y = z
     r2 = x * x + y * y
