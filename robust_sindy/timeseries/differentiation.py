@@ -271,8 +271,6 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
     """The widest window up to ``upper`` (per component) reached from the narrowest
     candidate by steps whose change of the derivative the library does not explain
     (see :func:`choose_half_window`)."""
-    import scipy.stats
-
     m, n = x2.shape
     a = as_float_array(library, "library", (2,))
     if a.shape[0] != m:
@@ -301,7 +299,6 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
             continue
         u, sing, _ = np.linalg.svd(a[test], full_matrices=False)
         u = u[:, sing > 1e-10 * sing[0]]
-        rank_bar = scipy.stats.chi2.ppf(1.0 - BIAS_LEVEL, u.shape[1])
         for h in steps[1:]:
             cur = _local_fit(x2[:, [k]], t, usable[:, [k]], [h], degree, sk)[:, 0]
             # The change, against the errors the wider derivative would leave in the
@@ -313,7 +310,7 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
             bound = 3.0 * float(robust_scale(r))
             r = np.clip(r, -bound, bound)
             cov = correlation_time(r)[0] * (u * r[:, None] ** 2).T @ u
-            bar = rank_bar
+            noise = None
             if sk is not None:
                 # The change's own noise, which no test can tell from a bias: the two
                 # estimators' weights on the states' noise (large where the narrower
@@ -323,9 +320,7 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
                 noise = float(sk[0]) ** 2 * (spread.T @ spread)
                 cov += noise
                 w_prev = w_cur
-                wald, bar = _wald_against_noise(c, cov, noise)
-            else:
-                wald = float(c @ np.linalg.lstsq(cov, c, rcond=None)[0])
+            wald, bar = _wald_against_noise(c, cov, noise)
             if not wald <= bar:
                 break
             out[k], prev = h, cur
@@ -343,14 +338,20 @@ def _wald_against_noise(c, cov, noise) -> tuple[float, float]:
     errors are larger than the change's noise, and the chi-square quantile of the
     number of columns would let through a bias as large as the gap between them.  The
     quantile is that of ``g chi2(nu)`` with the same mean and variance (Satterthwaite:
-    ``g = sum lambda^2 / sum lambda``, ``nu = (sum lambda)^2 / sum lambda^2``).
+    ``g = sum lambda^2 / sum lambda``, ``nu = (sum lambda)^2 / sum lambda^2``).  With
+    ``noise`` None (no noise level known), or ``cov`` not positive definite, the
+    chi-square quantile of the number of columns.
     """
     import scipy.linalg
     import scipy.stats
 
-    try:
-        factor = np.linalg.cholesky(cov)
-    except np.linalg.LinAlgError:
+    factor = None
+    if noise is not None:
+        try:
+            factor = np.linalg.cholesky(cov)
+        except np.linalg.LinAlgError:
+            pass
+    if factor is None:
         wald = float(c @ np.linalg.lstsq(cov, c, rcond=None)[0])
         return wald, float(scipy.stats.chi2.ppf(1.0 - BIAS_LEVEL, c.size))
     z = scipy.linalg.solve_triangular(factor, c, lower=True)
