@@ -443,24 +443,32 @@ class HuberSINDy(BaseEstimator):
         weak, why = (
             self._weak_rows(data, temporal, library, z, missing) if allow_weak else (None, "")
         )
-        alternative = None
+        alternative, guard = None, theta
         if weak is None and outlying.any():
             # A glitch need not cost its sample: the row of its repaired readings is the
             # row screen's second choice for a sample it would leave out, where most of
             # the sample's readings were not flagged (a sample most of whose readings are
             # off is a corrupted row, whose unflagged readings are suspect too).
             hit = outlying.sum(axis=1)
-            at = np.flatnonzero((hit > 0) & (2 * hit <= data.n_states))
-            if at.size:
-                repaired = z[at].copy()
-                repaired[:, : data.n_states] = np.where(
-                    outlying[at], temporal.repaired[at], repaired[:, : data.n_states]
-                )
-                alternative = (at, library.transform(repaired))
+            touched = np.flatnonzero(hit > 0)
+            repaired = z[touched].copy()
+            repaired[:, : data.n_states] = np.where(
+                outlying[touched], temporal.repaired[touched], repaired[:, : data.n_states]
+            )
+            repaired = library.transform(repaired)
+            if data.x_dot is None and self.derivative_window == "auto":
+                # The derivatives' window guard sees the library of every repaired
+                # reading: it tests each state on that state's own usable samples.
+                guard = theta.copy()
+                guard[touched] = repaired
+            few = 2 * hit[touched] <= data.n_states
+            if few.any():
+                alternative = (touched[few], repaired[few])
         if weak is None:
             deriv = derivatives(
-                data, temporal, self.differentiation, self.derivative_window, self.screen, theta
+                data, temporal, self.differentiation, self.derivative_window, self.screen, guard
             )
+            del guard  # a copy of the library, not needed further
             design, segments, row_flags = theta, data.segments, flags | missing.controls_suspect
         else:
             # Integrated rows: their targets carry the states' noise, not an estimate's.

@@ -104,13 +104,15 @@ def robust_derivative(repaired, t, usable, noise, window: str, library=None, hal
     """``differentiation="robust"`` of repaired states (``usable``: the entries the
     temporal screen left alone; ``noise``: its noise levels) and the half windows used:
     ``half`` when given, else as ``window`` says (``"auto"``: the automatic choice,
-    guarded by the ``library`` matrix when given)."""
+    guarded by the ``library`` matrix when given: each state on its own usable samples
+    of those where at most half the readings are flagged or missing, since a sample
+    most of whose readings are off is a corrupted row, whose other readings are suspect
+    too and whose library row is mostly repairs)."""
     if half is None:
         half = np.full(repaired.shape[1], FIXED_HALF_WINDOW)
         if window == "auto":
-            half = choose_half_window(
-                repaired, t, usable, library=library, rows=usable.all(axis=1), scale=noise,
-            )  # fmt: skip
+            rows = 2 * (~usable).sum(axis=1) <= usable.shape[1]
+            half = choose_half_window(repaired, t, usable, library=library, rows=rows, scale=noise)
     d = local_polynomial_derivative(repaired, t, half, mask=usable, scale=noise)
     return d, half
 
@@ -122,8 +124,8 @@ def differentiate(
 
     The robust one screens ``x`` in time itself, and uses the half windows
     ``half_window`` or chooses them as ``window`` says (guarded by the ``library``
-    matrix of ``x`` when given, as in a fit); ``scale``: the states' noise for its Huber
-    fits (by default the temporal screen's).
+    matrix of ``x`` when given; a fit gives it that of the repaired states); ``scale``:
+    the states' noise for its Huber fits (by default the temporal screen's).
     """
     if callable(how):
         out = as_float_array(how(x, t), "differentiation output", (2,))
@@ -193,7 +195,8 @@ def derivatives(
 ) -> Derivatives:
     """The regression's targets: the measured derivatives, or each trajectory's estimated
     ones (of the repaired states, outliers given no weight, over windows the ``library``
-    matrix (all samples) cannot tell from the narrowest one), with the samples whose
+    matrix (of the repaired states, all samples) cannot tell from the narrowest one),
+    with the samples whose
     derivatives the sampling does not resolve and the higher-order reference
     (:func:`trajectory_derivative`; ``check``: look for those samples)."""
     m, n = data.n_samples, data.n_states

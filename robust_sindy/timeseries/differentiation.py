@@ -181,7 +181,8 @@ def choose_half_window(
     A window that predicts the states well can still bias their derivative, and a
     regression explains a bias that is smooth in time with library terms: on nearly
     noise-free data even a tiny one is significant.  Given the ``library`` matrix
-    (m, p; its ``rows``, a boolean mask, are those tested: by default all), the window
+    (m, p; of the repaired states, as a fit builds it; its ``rows``, a boolean mask,
+    are those tested, with each component's usable samples: by default all), the window
     is widened from the narrowest candidate one step at a time, up to the choice
     above, only while the change of the derivative has no component along the
     library: the Wald statistic of the least-squares projection of that change on the
@@ -193,9 +194,14 @@ def choose_half_window(
     that noise alone (given ``scale``: a quadratic form in Gaussian noise, matched in
     mean and variance by a scaled chi-square; without it, the chi-square of the
     library's rank); the samples tested
-    are those of ``rows`` whose narrowest derivative the library fits within 3.5 robust
-    scales (a gross error the temporal screen missed would bend the projection and
-    inflate the errors the change is measured against).  The test is
+    are those of ``rows`` and the component's usable ones (a flagged reading of
+    another component costs its entry, not the sample) whose narrowest derivative the
+    library fits within 3.5 robust scales of the deleted residuals (a gross error the
+    temporal screen missed would bend the projection and inflate the errors the change
+    is measured against; where it sits in the library's row as well, that row's own
+    columns fit it), and at each step the samples where either window's derivative
+    is that far off are left out of the change (an error a window reaches and the
+    other does not is a spike, not a bias).  The test is
     invariant to rescaling the columns, so still unit-free.  ``scale`` (the noise of
     each component): the derivatives tested are the Huber fits that
     :func:`local_polynomial_derivative` gives with it.
@@ -242,20 +248,34 @@ def choose_half_window(
     return out
 
 
-def _fitted_rows(a, y, rows, cutoff: float = 3.5, rounds: int = 5) -> np.ndarray:
+def _fitted_rows(a, y, rows, cutoff: float = 3.5, rounds: int = 5):
     """``rows`` without the samples whose residual of ``y`` on the columns of ``a`` (by
-    least squares on the rows kept so far) exceeds ``cutoff`` robust scales."""
-    keep = rows.copy()
+    least squares on the rows kept so far; deleted residuals ``r / (1 - leverage)`` for
+    those rows) exceeds ``cutoff`` robust scales, and the orthonormal basis (kept rows,
+    rank) of ``a`` on the rows returned.
+
+    The deleted residual is the sample's error when the others fit: a row of high
+    leverage (a reading the temporal screen missed, far out in the library as well as
+    in ``y``) is fitted by its own columns and its plain residual is small.
+    """
+    keep, basis = rows.copy(), None
     for _ in range(rounds):
-        coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
-        r = y - a @ coef
+        u, sing, vt = np.linalg.svd(a[keep], full_matrices=False)
+        rank = sing > 1e-10 * sing[0]
+        u, sing, vt = u[:, rank], sing[rank], vt[rank]
+        basis = u
+        r = y - a @ (vt.T @ ((u.T @ y[keep]) / sing))
+        r[keep] /= np.maximum(1.0 - np.einsum("ij,ij->i", u, u), np.finfo(float).eps)
         # The scale of the signed residuals: that of their absolute values (about 0.6
         # of it for Gaussian ones) would cut into the bulk a little more every round.
         new = rows & (np.abs(r) <= cutoff * float(robust_scale(r[keep])))
         if np.array_equal(new, keep) or new.sum() <= a.shape[1]:
             break
-        keep = new
-    return keep
+        keep, basis = new, None
+    if basis is None:
+        u, sing, _ = np.linalg.svd(a[keep], full_matrices=False)
+        basis = u[:, sing > 1e-10 * sing[0]]
+    return keep, basis
 
 
 def _noise_scale(scale, n: int):
@@ -292,39 +312,58 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
         sk = None if scale is None else scale[[k]]
         prev = _local_fit(x2[:, [k]], t, usable[:, [k]], [steps[0]], degree, sk)[:, 0]
         w_prev = None if sk is None else _derivative_operator(t, usable[:, k], steps[0], degree)
-        # The samples the narrowest derivative's fit on the library does not reject
-        # (gross errors the temporal screen missed would otherwise bend the projection).
-        test = _fitted_rows(a, prev, rows)
+        # The samples of the component's own usable readings (another component's
+        # flagged reading costs its entry, not the sample: the library is of the
+        # repaired states) that the narrowest derivative's fit on the library does not
+        # reject (gross errors the temporal screen missed would otherwise bend the
+        # projection).
+        own = rows & usable[:, k]
+        if own.sum() <= a.shape[1]:
+            continue
+        test, u = _fitted_rows(a, prev, own)
         if test.sum() <= a.shape[1]:
             continue
-        u, sing, _ = np.linalg.svd(a[test], full_matrices=False)
-        u = u[:, sing > 1e-10 * sing[0]]
+        leverage = np.einsum("ij,ij->i", u, u)
+        gross_prev = _gross(prev[test] - u @ (u.T @ prev[test]), leverage)
         for h in steps[1:]:
             cur = _local_fit(x2[:, [k]], t, usable[:, [k]], [h], degree, sk)[:, 0]
             # The change, against the errors the wider derivative would leave in the
             # regression (its residuals on the whole library, clipped at 3 robust
             # scales as Huber's score clips them): the change counts at the precision
             # the regression will see, not at that of the noisier narrow window.
-            c = u.T @ (cur - prev)[test]
             r = cur[test] - u @ (u.T @ cur[test])
+            # A gross error the temporal screen missed reaches the wider window's
+            # derivative at samples the narrower one did not see (and the other way
+            # round): a spike, not a bias, left out of the change's projection.
+            gross = _gross(r, leverage)
+            uk = u * ~(gross | gross_prev)[:, None]
+            c = uk.T @ (cur - prev)[test]
             bound = 3.0 * float(robust_scale(r))
             r = np.clip(r, -bound, bound)
-            cov = correlation_time(r)[0] * (u * r[:, None] ** 2).T @ u
+            cov = correlation_time(r)[0] * (uk * r[:, None] ** 2).T @ uk
             noise = None
             if sk is not None:
                 # The change's own noise, which no test can tell from a bias: the two
                 # estimators' weights on the states' noise (large where the narrower
                 # window's samples crowd together, as at irregular times).
                 w_cur = _derivative_operator(t, usable[:, k], h, degree)
-                spread = (w_cur - w_prev)[test].T @ u
+                spread = (w_cur - w_prev)[test].T @ uk
                 noise = float(sk[0]) ** 2 * (spread.T @ spread)
                 cov += noise
-                w_prev = w_cur
             wald, bar = _wald_against_noise(c, cov, noise)
             if not wald <= bar:
                 break
-            out[k], prev = h, cur
+            out[k], prev, gross_prev = h, cur, gross
+            if sk is not None:
+                w_prev = w_cur
     return out
+
+
+def _gross(r, leverage, cutoff: float = 3.5) -> np.ndarray:
+    """The residuals ``r`` whose deleted residuals ``r / (1 - leverage)`` lie beyond
+    ``cutoff`` robust scales (as :func:`_fitted_rows` leaves samples out)."""
+    r = r / np.maximum(1.0 - leverage, np.finfo(float).eps)
+    return np.abs(r) > cutoff * float(robust_scale(r))
 
 
 def _wald_against_noise(c, cov, noise) -> tuple[float, float]:
