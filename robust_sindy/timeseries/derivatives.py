@@ -196,9 +196,9 @@ def derivatives(
     """The regression's targets: the measured derivatives, or each trajectory's estimated
     ones (of the repaired states, outliers given no weight, over windows the ``library``
     matrix (of the repaired states, all samples) cannot tell from the narrowest one),
-    with the samples whose
-    derivatives the sampling does not resolve and the higher-order reference
-    (:func:`trajectory_derivative`; ``check``: look for those samples)."""
+    with the samples whose derivatives the sampling does not resolve and the
+    higher-order reference (:func:`trajectory_derivative`; ``check``: look for those
+    samples)."""
     m, n = data.n_samples, data.n_states
     if data.x_dot is not None:
         # A missing measured derivative (NaN) has no target: its sample is left out of
