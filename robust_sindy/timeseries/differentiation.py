@@ -248,7 +248,12 @@ def choose_half_window(
     return out
 
 
-def _fitted_rows(a, y, rows, cutoff: float = 3.5, rounds: int = 5):
+#: Robust scales beyond which the guard takes a derivative's residual on the library
+#: for a gross error (:func:`_fitted_rows`, :func:`_gross`).
+_GROSS_CUTOFF = 3.5
+
+
+def _fitted_rows(a, y, rows, cutoff: float = _GROSS_CUTOFF, rounds: int = 5):
     """``rows`` without the samples whose residual of ``y`` on the columns of ``a`` (by
     least squares on the rows kept so far; deleted residuals ``r / (1 - leverage)`` for
     those rows) exceeds ``cutoff`` robust scales, and the orthonormal basis (kept rows,
@@ -258,12 +263,13 @@ def _fitted_rows(a, y, rows, cutoff: float = 3.5, rounds: int = 5):
     leverage (a reading the temporal screen missed, far out in the library as well as
     in ``y``) is fitted by its own columns and its plain residual is small.
     """
-    keep, basis = rows.copy(), None
-    for _ in range(rounds):
+    keep = rows.copy()
+    for done in range(rounds + 1):
         u, sing, vt = np.linalg.svd(a[keep], full_matrices=False)
         rank = sing > 1e-10 * sing[0]
         u, sing, vt = u[:, rank], sing[rank], vt[rank]
-        basis = u
+        if done == rounds:
+            break  # the basis of the rows the last round kept
         r = y - a @ (vt.T @ ((u.T @ y[keep]) / sing))
         r[keep] /= np.maximum(1.0 - np.einsum("ij,ij->i", u, u), np.finfo(float).eps)
         # The scale of the signed residuals: that of their absolute values (about 0.6
@@ -271,11 +277,8 @@ def _fitted_rows(a, y, rows, cutoff: float = 3.5, rounds: int = 5):
         new = rows & (np.abs(r) <= cutoff * float(robust_scale(r[keep])))
         if np.array_equal(new, keep) or new.sum() <= a.shape[1]:
             break
-        keep, basis = new, None
-    if basis is None:
-        u, sing, _ = np.linalg.svd(a[keep], full_matrices=False)
-        basis = u[:, sing > 1e-10 * sing[0]]
-    return keep, basis
+        keep = new
+    return keep, u
 
 
 def _noise_scale(scale, n: int):
@@ -359,7 +362,7 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
     return out
 
 
-def _gross(r, leverage, cutoff: float = 3.5) -> np.ndarray:
+def _gross(r, leverage, cutoff: float = _GROSS_CUTOFF) -> np.ndarray:
     """The residuals ``r`` whose deleted residuals ``r / (1 - leverage)`` lie beyond
     ``cutoff`` robust scales (as :func:`_fitted_rows` leaves samples out)."""
     r = r / np.maximum(1.0 - leverage, np.finfo(float).eps)
