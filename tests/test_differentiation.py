@@ -240,6 +240,37 @@ def test_library_guard_tests_the_bulk_of_the_rows():
     assert min(kept) > 0.99, kept
 
 
+def test_subset_basis_is_that_of_the_rows_kept():
+    """One basis of the library on all rows serves every subset: on random subsets it
+    spans what an SVD of the rows kept spans, is orthonormal, and gives the same
+    least-squares fit (on every row of the base where the rank is full); a column that
+    lives only on rows left out drops from the rank."""
+    from robust_sindy.timeseries.differentiation import _orthonormal_basis, _subset_basis
+
+    rng = np.random.default_rng(3)
+    a = rng.normal(size=(600, 25)) * np.logspace(-3, 3, 25)
+    a[:, 5] = 0.0
+    a[:40, 5] = rng.normal(size=40)  # lives on the first 40 rows only
+    y = rng.normal(size=600)
+    base = np.ones(600, dtype=bool)
+    base[590:] = False
+    u = _orthonormal_basis(a[base])
+    for draw in range(5):
+        keep = base & (rng.random(600) > 0.3)
+        if draw == 0:
+            keep[:40] = False  # column 5 has nothing left
+        q, w = _subset_basis(u, base, keep)
+        assert q.shape[1] == np.linalg.matrix_rank(a[keep]) == (24 if draw == 0 else 25)
+        np.testing.assert_allclose(q.T @ q, np.eye(q.shape[1]), atol=1e-10)
+        np.testing.assert_allclose(q @ (q.T @ a[keep]), a[keep], atol=1e-9 * np.abs(a).max())
+        coef = np.linalg.lstsq(a[keep], y[keep], rcond=None)[0]
+        fitted = u @ (w @ (q.T @ y[keep]))
+        # On the rows kept the fit is unique; on the others only where the rank is full.
+        np.testing.assert_allclose(fitted[keep[base]], a[keep] @ coef, atol=1e-9)
+        if draw > 0:
+            np.testing.assert_allclose(fitted, a[base] @ coef, atol=1e-9)
+
+
 def test_library_guard_costs_a_flagged_entry_not_its_sample():
     """Glitches in one channel at a time, 15 % of the entries of ten channels: fewer
     complete samples (64 to 72) than the library has terms (66).  Testing each state

@@ -253,32 +253,70 @@ def choose_half_window(
 _GROSS_CUTOFF = 3.5
 
 
-def _fitted_rows(a, y, rows, cutoff: float = _GROSS_CUTOFF, rounds: int = 5):
+#: Of a direction of the library's span, the least share of its energy on the rows kept
+#: for it to stay in the basis of those rows (:func:`_subset_basis`).
+_DIRECTION_KEPT = 1e-10
+
+
+def _orthonormal_basis(a) -> np.ndarray:
+    """An orthonormal basis (rows, rank) of the span of the columns of ``a``: its left
+    singular vectors above ``1e-10`` of the largest singular value."""
+    u, sing, _ = np.linalg.svd(a, full_matrices=False)
+    return u[:, sing > 1e-10 * sing[0]]
+
+
+def _subset_basis(u, base, keep):
+    """The orthonormal basis (rows ``keep``, rank) of the library's span on the rows
+    ``keep``, a subset of ``base``, from ``u``, an orthonormal basis of it on the rows
+    ``base``: one SVD serves every subset (every state's own rows, every round of the
+    rows test).  The Gram matrix of ``u`` on the rows kept is ``I - u_R^T u_R`` (``u_R``
+    the rows left out); its eigenvectors over the square roots of their eigenvalues
+    whiten it (the directions that keep at most :data:`_DIRECTION_KEPT` of their energy
+    are dropped).  Returns the basis ``u[keep] w`` and ``w``: the least-squares
+    coefficients of ``y[keep]`` in the basis ``u`` are ``w (basis^T y[keep])``.  A
+    subset costs a product with the rows kept and an eigendecomposition of the rank's
+    size, where an SVD of the rows kept costs several such products.
+    """
+    inside = keep[base]
+    left = u[~inside]
+    mu, w = np.linalg.eigh(np.eye(u.shape[1]) - left.T @ left)
+    ok = mu > _DIRECTION_KEPT
+    w = w[:, ok] / np.sqrt(mu[ok])
+    return u[inside] @ w, w
+
+
+def _fitted_rows(a, y, rows, cutoff: float = _GROSS_CUTOFF, rounds: int = 5, base=None):
     """``rows`` without the samples whose residual of ``y`` on the columns of ``a`` (by
     least squares on the rows kept so far; deleted residuals ``r / (1 - leverage)`` for
     those rows) exceeds ``cutoff`` robust scales, and the orthonormal basis (kept rows,
-    rank) of ``a`` on the rows returned.
+    rank) of ``a`` on the rows returned.  ``base``: ``(u, base_rows)``, an orthonormal
+    basis of ``a`` on rows that hold ``rows`` (:func:`_subset_basis`; by default that
+    of ``rows``).
 
     The deleted residual is the sample's error when the others fit: a row of high
     leverage (a reading the temporal screen missed, far out in the library as well as
     in ``y``) is fitted by its own columns and its plain residual is small.
     """
+    if base is None:
+        base = (_orthonormal_basis(a[rows]), rows)
+    u, where = base
     keep = rows.copy()
     for done in range(rounds + 1):
-        u, sing, vt = np.linalg.svd(a[keep], full_matrices=False)
-        rank = sing > 1e-10 * sing[0]
-        u, sing, vt = u[:, rank], sing[rank], vt[rank]
+        q, w = _subset_basis(u, where, keep)
         if done == rounds:
             break  # the basis of the rows the last round kept
-        r = y - a @ (vt.T @ ((u.T @ y[keep]) / sing))
-        r[keep] /= np.maximum(1.0 - np.einsum("ij,ij->i", u, u), np.finfo(float).eps)
+        # The residuals on every row of the base: the kept rows' least-squares fit,
+        # carried to the others through the base's basis.
+        r = np.zeros_like(y)
+        r[where] = y[where] - u @ (w @ (q.T @ y[keep]))
+        r[keep] /= np.maximum(1.0 - np.einsum("ij,ij->i", q, q), np.finfo(float).eps)
         # The scale of the signed residuals: that of their absolute values (about 0.6
         # of it for Gaussian ones) would cut into the bulk a little more every round.
         new = rows & (np.abs(r) <= cutoff * float(robust_scale(r[keep])))
         if np.array_equal(new, keep) or new.sum() <= a.shape[1]:
             break
         keep = new
-    return keep, u
+    return keep, q
 
 
 def _noise_scale(scale, n: int):
@@ -308,6 +346,8 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
     # states (the columns' span, and so the test, is the same).
     norms = column_norms(a[rows])
     a = a / np.where(norms > 0, norms, 1.0)
+    # One basis of the library on the rows tested, shared by every state's own rows.
+    base = (_orthonormal_basis(a[rows]), rows)
     for k in range(n):
         steps = [h for h in cands if h <= upper[k]]
         if len(steps) < 2:
@@ -323,7 +363,7 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
         own = rows & usable[:, k]
         if own.sum() <= a.shape[1]:
             continue
-        test, u = _fitted_rows(a, prev, own)
+        test, u = _fitted_rows(a, prev, own, base=base)
         if test.sum() <= a.shape[1]:
             continue
         leverage = np.einsum("ij,ij->i", u, u)
@@ -343,7 +383,8 @@ def _library_guard(x2, t, usable, upper, degree, cands, library, rows, scale) ->
             c = uk.T @ (cur - prev)[test]
             bound = 3.0 * float(robust_scale(r))
             r = np.clip(r, -bound, bound)
-            cov = correlation_time(r)[0] * (uk * r[:, None] ** 2).T @ uk
+            weighted = uk * np.abs(r)[:, None]
+            cov = correlation_time(r)[0] * (weighted.T @ weighted)  # one symmetric product
             noise = None
             if sk is not None:
                 # The change's own noise, which no test can tell from a bias: the two
