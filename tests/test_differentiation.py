@@ -245,7 +245,11 @@ def test_subset_basis_is_that_of_the_rows_kept():
     spans what an SVD of the rows kept spans, is orthonormal, and gives the same
     least-squares fit (on every row of the base where the rank is full); a column that
     lives only on rows left out drops from the rank."""
-    from robust_sindy.timeseries.differentiation import _orthonormal_basis, _subset_basis
+    from robust_sindy.timeseries.differentiation import (
+        _fitted_rows,
+        _orthonormal_basis,
+        _subset_basis,
+    )
 
     rng = np.random.default_rng(3)
     a = rng.normal(size=(600, 25)) * np.logspace(-3, 3, 25)
@@ -269,6 +273,9 @@ def test_subset_basis_is_that_of_the_rows_kept():
         np.testing.assert_allclose(fitted[keep[base]], a[keep] @ coef, atol=1e-9)
         if draw > 0:
             np.testing.assert_allclose(fitted, a[base] @ coef, atol=1e-9)
+    # Rows outside the base have no row in its basis: refused, not fitted silently.
+    with pytest.raises(ValueError, match="among the rows"):
+        _fitted_rows(a, y, np.ones(600, dtype=bool), base=(u, base))
 
 
 def test_library_guard_costs_a_flagged_entry_not_its_sample():

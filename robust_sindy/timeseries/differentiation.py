@@ -300,6 +300,8 @@ def _fitted_rows(a, y, rows, cutoff: float = _GROSS_CUTOFF, rounds: int = 5, bas
     if base is None:
         base = (_orthonormal_basis(a[rows]), rows)
     u, where = base
+    if np.any(rows & ~where):
+        raise ValueError("rows must be among the rows of the base's basis")
     keep = rows.copy()
     for done in range(rounds + 1):
         q, w = _subset_basis(u, where, keep)
