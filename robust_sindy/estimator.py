@@ -456,9 +456,14 @@ class HuberSINDy(BaseEstimator):
                 outlying[touched], temporal.repaired[touched], repaired[:, : data.n_states]
             )
             repaired = library.transform(repaired)
-            if data.x_dot is None and self.derivative_window == "auto":
-                # The derivatives' window guard sees the library of every repaired
-                # reading: it tests each state on that state's own usable samples.
+            if (
+                data.x_dot is None
+                and self.differentiation == "robust"
+                and self.derivative_window == "auto"
+            ):
+                # The derivatives' window guard (robust differentiation only) sees the
+                # library of every repaired reading: it tests each state on that
+                # state's own usable samples.
                 guard = theta.copy()
                 guard[touched] = repaired
             few = 2 * hit[touched] <= data.n_states
