@@ -31,6 +31,7 @@ from .selection.criteria import MIN_BIC_MARGIN, blocked_folds
 from .selection.lam_path import pilot_budget
 from .selection.refit import one_step_contributions
 from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, VISIBLE, robust_t
+from .selection.variables import KEEP_EVIDENCE
 
 __all__ = [
     "MAX_CONDITION",
@@ -301,6 +302,15 @@ class Diagnostics:
         scored better under the noise its own terms carry
         (:mod:`robust_sindy.selection.variables`), 0 where the chosen support stayed,
         -1 where the score was not computed (the strong form, no measured noise).
+    dropped_evidence : ndarray (n,)
+        With the weak form, per equation from whose support the final selection dropped
+        terms (below the significance bar, under the noise floor or within their
+        errors-in-variables bias): the most that putting one of them back lowers the
+        score the rescoring chose the support by, where the states' noise explains the
+        residuals of both supports compared
+        (:func:`~robust_sindy.selection.variables.dropped_evidence`); NaN elsewhere.
+        Above ``KEEP_EVIDENCE`` (10, "very strong" evidence) the data prefer that term,
+        which may be real: a warning says so.
     missing_states : ndarray of int (n_states,)
         Missing readings (NaN) of each state, filled by the temporal screen's local fits
         (:mod:`robust_sindy.timeseries.missing`).
@@ -366,6 +376,7 @@ class Diagnostics:
     constrained_delta: np.ndarray = None
     energy_residual: float = float("nan")
     trapping_eigenvalue: float = float("nan")
+    dropped_evidence: np.ndarray = field(default_factory=lambda: np.zeros(0))
     repaired_rows: int = 0
     record_samples: int = 0
     independent_samples: np.ndarray = field(default_factory=lambda: np.zeros(0))
@@ -444,6 +455,12 @@ class Diagnostics:
             + np.array2string(_smallest(self.significance), precision=3),
             "  terms dropped below the significance bar per equation: "
             f"{np.isfinite(self.pruned).sum(axis=1).tolist()}",
+            "  the weak form's score against the final selection's drops: "
+            + (
+                np.array2string(self.dropped_evidence, precision=3)
+                if np.isfinite(self.dropped_evidence).any()
+                else "no drops scored"
+            ),
             f"  aliased terms left out: {', '.join(self.aliased) or 'none'}",
             f"  formulation: {self.formulation_reason or self.formulation}",
             "  supports replaced under the noise their terms carry (weak form): "
@@ -588,6 +605,14 @@ def _weak_message(d, e) -> str:
         )
         + "; see diagnostics_.significance, and try more data or measured derivatives"
     )
+
+
+def _contested(d) -> np.ndarray | None:
+    """The equations whose final-selection drops the weak form's score contests."""
+    if d.dropped_evidence.size == 0:
+        return None
+    over = np.flatnonzero(np.nan_to_num(d.dropped_evidence, nan=-np.inf) > KEEP_EVIDENCE)
+    return over if over.size else None
 
 
 def _pruned_message(d, e) -> str:
@@ -812,6 +837,20 @@ RULES: tuple[Rule, ...] = (
     ),
     Rule("weak terms", lambda d: _equations_with(d.weak), _weak_message),
     Rule(
+        "drops the score contests",
+        lambda d: _contested(d),
+        lambda d, e: (
+            f"equations {e.tolist()}: the final selection dropped a term (below the "
+            "significance bar, under the noise floor or within its errors-in-variables "
+            "bias) that the weak form's score under the noise the terms carry prefers to "
+            "keep, by "
+            + ", ".join(f"{v:.3g}" for v in d.dropped_evidence[e])
+            + f" (more than {KEEP_EVIDENCE:g}): it may be real and missing from the "
+            "model (see diagnostics_.dropped_evidence, pruned and bias_ratio); less noisy "
+            "states or more data would decide"
+        ),
+    ),
+    Rule(
         "pruned terms",
         lambda d: _equations_with(np.nan_to_num(d.pruned) >= VISIBLE),
         _pruned_message,
@@ -962,6 +1001,7 @@ def diagnose(
     constrained=None,
     bounded=None,
     rescored=None,
+    dropped=None,
 ) -> Diagnostics:
     """The diagnostics of a fit from its stages' outcomes: the kept problem
     (:class:`~robust_sindy.selection.problem.Problem`), the noise floor, the choice of
@@ -1099,6 +1139,7 @@ def diagnose(
         n_rows=0 if weak is None else weak.n_rows,
         formulation_reason=formulation,
         errors_in_variables=(np.full(n, -1) if rescored is None else rescored.switched.astype(int)),
+        dropped_evidence=np.full(n, np.nan) if dropped is None else np.asarray(dropped, float),
         temporal_flagged_left_out=int(
             entry_flags.sum()
             if weak is not None

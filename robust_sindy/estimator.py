@@ -70,7 +70,7 @@ from .selection.final import FinalSelection, final_selection, significance_bar
 from .selection.problem import Problem
 from .selection.rows import RowScreen, screen_samples
 from .selection.stability import boundedness, quadratic_parts
-from .selection.variables import RowNoise, rescore_weak
+from .selection.variables import RowNoise, dropped_evidence, rescore_weak
 from .simulate import integrate, simulation_inputs
 from .timeseries.derivatives import (
     DERIVATIVE_WINDOWS,
@@ -518,11 +518,12 @@ class HuberSINDy(BaseEstimator):
             kept, choice, method=self.method, solver=self.solver, options=options,
             threshold=self.threshold, refit=self.refit,
         )  # fmt: skip
-        rescored = None
+        rescored = row_noise = None
         if weak is not None and choice.selection is not None and sample_noise is not None:
+            state_noise = temporal.scale / scaler.y_scale
+            row_noise = RowNoise.of_weak(weak, rows.keep, sample_noise, state_noise)
             fitted, rescored = rescore_weak(
-                kept, floor.design, choice.selection, fitted,
-                RowNoise.of_weak(weak, rows.keep, sample_noise, temporal.scale / scaler.y_scale),
+                kept, floor.design, choice.selection, fitted, row_noise,
                 method=self.method, solver=self.solver, options=options,
             )  # fmt: skip
         stages.start("final selection")
@@ -537,6 +538,13 @@ class HuberSINDy(BaseEstimator):
         else:
             nan = np.full(fitted.coef.shape, np.nan)
             final = FinalSelection(fitted.coef, nan, nan.copy(), nan.copy())
+        dropped = None
+        if rescored is not None and self.constraints is None:
+            # The final selection's drops, scored as the rescoring scored the candidates.
+            dropped = dropped_evidence(
+                floor.design, kept.y_s, fitted.coef != 0, final.coef != 0,
+                kept.scaler.coef_to_standard(fitted.coef), row_noise,
+            )  # fmt: skip
         refit = None
         if self.constraints is not None:
             con = build_constraints(
@@ -564,7 +572,7 @@ class HuberSINDy(BaseEstimator):
             entry_flags=outlying, row_flags=row_flags, deriv=deriv, missing=missing,
             feature_names=library.get_feature_names(), selection_tol=self.selection_tol,
             method=pilot, weak=weak, covered=covered, formulation=why, constrained=refit,
-            rescored=rescored,
+            rescored=rescored, dropped=dropped,
             bounded=_boundedness(library, final.coef, data.n_states),
         )  # fmt: skip
         stages.close()

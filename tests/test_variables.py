@@ -193,3 +193,86 @@ def test_the_runner_up_warning_names_the_score_its_margins_are_on():
     # Under constraints the margins are on the criterion summed over the equations.
     d.constraint_residual = 1e-15
     assert "summed over the equations" in _runner_up_score(d, [0, 1])
+
+
+def _rows_with_extra(seed, level=0.01):
+    """``_rows`` with two more columns, smooth signals free of noise (they depend on no
+    state): the first in the target with a coefficient that leaves, when dropped, a
+    quarter of the rows in chi-square; the second spurious."""
+    x, dt = _follower()
+    sigma = level * np.sqrt(np.mean(x**2, axis=0))
+    noisy = x + sigma * np.random.default_rng(seed).normal(size=x.shape)
+    t = dt * np.arange(x.shape[0])
+    w, s = _test_functions(x.shape[0], dt)
+    g = w @ np.column_stack([noisy, np.cos(0.37 * t + 1.0), np.sin(0.81 * t + 0.3)])
+    ones = np.ones((x.shape[0], 1))
+    noise = RowNoise(w, s, LibraryNoise(4, [[0], [1]], [sigma[0] * ones, sigma[1] * ones]), sigma)
+    # What the column leaves in chi-square beside the other true terms, under the
+    # covariance of the true model (one round: that covariance kept), to scale it.
+    on, xi = np.array([True, True, False, False]), np.array([-RATE, RATE, 0.0, 0.0])
+    own = gls_score(g, g[:, 2], on, xi, noise, 0, rounds=1)[0]
+    coef = np.sqrt(0.25 * g.shape[0] / own)
+    y = -(s @ noisy[:, 0]) + coef * g[:, 2]
+    return g, y[:, None], noise, coef
+
+
+def test_the_score_contests_the_drop_of_a_true_term_and_not_of_a_spurious_one():
+    """Putting back a dropped true term whose loss leaves a quarter of the rows in
+    chi-square lowers the score far beyond KEEP_EVIDENCE in every seed; putting back a
+    spurious column dropped from the true support plus it does not (its chi-square gain
+    is chi-square with one degree of freedom, against a penalty of log(rows): beyond
+    KEEP_EVIDENCE with probability about 1e-4).  Where the residuals of a support
+    compared are beyond what the states' noise explains (a dropped term that carried
+    most of the equation; the noise taken 1000 times smaller than it is), the score
+    says nothing about the drop."""
+    from robust_sindy.selection.variables import KEEP_EVIDENCE, dropped_evidence
+
+    def support(*on):
+        out = np.zeros((4, 1), dtype=bool)
+        out[list(on), 0] = True
+        return out
+
+    true = support(0, 1, 2)
+    for seed in range(6):
+        g, y, noise, coef = _rows_with_extra(seed)
+        start = np.array([[-RATE], [RATE], [coef], [0.0]])
+        lost = dropped_evidence(g, y, true, support(0, 1), start, noise)
+        assert lost[0] > 3 * KEEP_EVIDENCE
+        spurious = dropped_evidence(g, y, support(0, 1, 2, 3), true, start, noise)
+        assert spurious[0] < KEEP_EVIDENCE - 5.0
+        assert np.isnan(dropped_evidence(g, y, true, true, start, noise)).all()
+        # The score is the rescoring's: the chi-square plus log(rows) per term.
+        chi2 = [gls_score(g, y[:, 0], s[:, 0], start[:, 0], noise, 0)[0]
+                for s in (support(0, 1, 2, 3), true)]  # fmt: skip
+        assert np.isclose(spurious[0], chi2[1] - chi2[0] - np.log(g.shape[0]), rtol=1e-12)
+        assert np.isnan(dropped_evidence(g, y, true, support(1, 2), start, noise)).all()
+        smaller = [v * 1e-3 for v in noise.columns.values]
+        tiny = RowNoise(noise.weights, noise.slopes, LibraryNoise(4, noise.columns.cols, smaller),
+                        noise.target * 1e-3)  # fmt: skip
+        assert np.isnan(dropped_evidence(g, y, true, support(0, 1), start, tiny)).all()
+
+
+def test_the_warning_on_contested_drops_fires_above_keep_evidence_only():
+    import dataclasses
+
+    from robust_sindy import HuberSINDy, PolynomialLibrary
+    from robust_sindy.selection.variables import KEEP_EVIDENCE
+
+    t = 0.02 * np.arange(1500)
+    x = np.column_stack([np.sin(t), np.cos(t)]) + 0.01 * np.random.default_rng(0).normal(
+        size=(t.size, 2)
+    )
+    strong = HuberSINDy(library=PolynomialLibrary(degree=2), formulation="strong").fit(x, t)
+    assert np.isnan(strong.diagnostics_.dropped_evidence).all()
+    weak = HuberSINDy(library=PolynomialLibrary(degree=2), formulation="weak").fit(x, t)
+    d = weak.diagnostics_
+    assert d.dropped_evidence.shape == (2,)
+    assert "score against the final selection's drops" in str(d)
+    for value, fires in ((np.nan, False), (-3.0, False), (KEEP_EVIDENCE - 0.1, False),
+                         (KEEP_EVIDENCE + 0.1, True), (250.0, True)):  # fmt: skip
+        evidence = np.array([np.nan, value])
+        found = [m for m in dataclasses.replace(d, dropped_evidence=evidence).problems()
+                 if "prefers to keep" in m]  # fmt: skip
+        assert len(found) == int(fires)
+        if fires:
+            assert found[0].startswith("equations [1]:") and f"{value:.3g}" in found[0]

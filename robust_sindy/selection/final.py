@@ -102,6 +102,7 @@ def final_selection(
     of the kept samples (estimated derivatives; None otherwise), ``method`` the Huber
     method of the drops.
     """
+    coef = np.array(coef, dtype=float)  # the drops write into it; the caller's stays
     delta_s = kept.delta_standard(delta)
     refit = _Refit(kept, delta, method, solver, options)
     error = None if reference is None else kept.scaler.y(kept.y - reference)

@@ -51,8 +51,10 @@ from .refit import refit_column
 
 __all__ = [
     "GLS_ROUNDS",
+    "KEEP_EVIDENCE",
     "Rescored",
     "RowNoise",
+    "dropped_evidence",
     "gls_score",
     "rescore_supports",
     "rescore_weak",
@@ -71,6 +73,10 @@ MOVES_SCORED = 3
 #: such as the quadrature's error on nearly noise-free states, which would make every
 #: term look significant).
 NOISE_EXPLAINS = 2.0
+#: How much a term the final selection dropped from the support the rescoring chose may
+#: lower the score when put back before the drop goes against the data: 10 is "very
+#: strong" evidence on the scale of Kass and Raftery (twice the log of the Bayes factor).
+KEEP_EVIDENCE = 10.0
 
 
 @dataclass
@@ -368,6 +374,37 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
         coefs = np.array([xi for _, xi in memo.values()])
         scored.append((fitted, chi2 + penalty * fitted.sum(axis=1), coefs))
     return Rescored(support, switched, chosen_score, best_score, counts, scored)
+
+
+def dropped_evidence(g, y, before, after, start, noise: RowNoise) -> np.ndarray:
+    """Per equation whose support ``after`` (bool, p x n: the model reported) left out
+    terms of ``before`` (the support the rescoring chose), the most that putting one of
+    them back lowers the score (:func:`gls_score` plus ``log(rows)`` per term, as in
+    :func:`rescore_supports`), where the states' noise explains the residuals of both
+    supports compared (chi-square at most :data:`NOISE_EXPLAINS` times the rows, as
+    :func:`rescore_supports` requires of a replacement: beyond it the residuals hold
+    what the noise model leaves out, such as the quadrature's error on nearly
+    noise-free states, which a spurious term absorbs); NaN for the other equations.
+    ``start`` (p, n, standardised) starts the fits.  Positive: the score, under the
+    noise the terms carry, prefers that term in the model."""
+    rows = g.shape[0]
+    bound = NOISE_EXPLAINS * rows
+    penalty = np.log(max(rows, 2))
+    out = np.full(y.shape[1], np.nan)
+    for k in np.flatnonzero(np.any(before & ~after, axis=0)):
+        reported = gls_score(g, y[:, k], after[:, k], start[:, k], noise, k)[0]
+        if not reported <= bound:
+            continue
+        gains = []
+        for j in np.flatnonzero(before[:, k] & ~after[:, k]):
+            back = after[:, k].copy()
+            back[j] = True
+            chi2 = gls_score(g, y[:, k], back, start[:, k], noise, k)[0]
+            if chi2 <= bound:
+                gains.append(reported - chi2 - penalty)
+        if gains:
+            out[k] = max(gains)
+    return out
 
 
 def rescore_weak(
