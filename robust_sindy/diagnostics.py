@@ -609,8 +609,6 @@ def _weak_message(d, e) -> str:
 
 def _contested(d) -> np.ndarray | None:
     """The equations whose final-selection drops the weak form's score contests."""
-    if d.dropped_evidence.size == 0:
-        return None
     over = np.flatnonzero(np.nan_to_num(d.dropped_evidence, nan=-np.inf) > KEEP_EVIDENCE)
     return over if over.size else None
 
@@ -838,7 +836,7 @@ RULES: tuple[Rule, ...] = (
     Rule("weak terms", lambda d: _equations_with(d.weak), _weak_message),
     Rule(
         "drops the score contests",
-        lambda d: _contested(d),
+        _contested,
         lambda d, e: (
             f"equations {e.tolist()}: the final selection dropped a term (below the "
             "significance bar, under the noise floor or within its errors-in-variables "
