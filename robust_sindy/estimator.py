@@ -563,6 +563,7 @@ class HuberSINDy(BaseEstimator):
                     method=self.method, solver=self.solver,
                 ),
                 significance=constrained_significance(kept, refit, con),
+                constraints=con,
             )  # fmt: skip
             final = replace(final, coef=refit.coef)
         covered = None if weak is None else weak.covered(rows.keep)
@@ -712,11 +713,6 @@ class HuberSINDy(BaseEstimator):
         """Dask arrays: the model is chosen on a sample in memory
         (:func:`robust_sindy.outofcore.sample`, all the stages of a fit), then refitted on
         every sample out of core (:func:`robust_sindy.outofcore.refit`)."""
-        if self.constraints is not None:
-            raise ValueError(
-                "constraints are fitted in memory only: pass NumPy arrays (or a sample of "
-                "the data) with constraints"
-            )
         if self.formulation == "weak":
             raise ValueError(
                 "formulation='weak' is fitted in memory only: the out-of-core refit "

@@ -226,7 +226,9 @@ def fit(
         ``gap`` the problem's duality gap (the same in every column), and ``info``
         holds ``constraint_residual``, the multipliers ``nu`` and ``mu`` and the
         solver's own status.  ADMM options: ``rho, alpha, max_iter, eps, tol,
-        check_every, polish``.
+        check_every, polish``.  Dask arrays are solved out of core by the same
+        certificate (:func:`robust_sindy.solvers.chunked.solve_chunked_constrained`;
+        options ``tol, max_iter, progress``).
     **options
         Solver options.  ADMM: ``rho, kappa, alpha, equilibrate, adaptive_rho, polish,
         max_iter, eps_abs, eps_rel, tol, gap_tol, check_every, newton_steps,
@@ -428,8 +430,9 @@ def _advice(method, solver_name, out, bad, opts, tol, delta_k, y, loss) -> str:
     return advice
 
 
-def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResult:
-    """:func:`fit` on Dask arrays chunked by rows (:mod:`robust_sindy.solvers.chunked`)."""
+def _dask_problem(theta, xdot, method, delta, lam, loss, solver, options):
+    """The checks of a fit on Dask arrays: ``(theta, y (m, n), one_d, delta (n,), lam as
+    given (checked), lam (p, n), tol, max_iter)``."""
     import dask.array as da
 
     if method != "admm" or loss != "huber" or solver is not None:
@@ -459,6 +462,15 @@ def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResu
     delta_k = loss_delta(loss, delta, n)
     lam_k = check_lam(lam, p, n, one_d)
     lam_full = np.broadcast_to(lam_k if lam_k.ndim == 2 else lam_k[None, :], (p, n)).copy()
+    return theta, y, one_d, delta_k, lam_k, lam_full, tol, max_iter
+
+
+def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResult:
+    """:func:`fit` on Dask arrays chunked by rows (:mod:`robust_sindy.solvers.chunked`)."""
+
+    theta, y, one_d, delta_k, lam_k, lam_full, tol, max_iter = _dask_problem(
+        theta, xdot, method, delta, lam, loss, solver, options
+    )
     t0 = time.perf_counter()
     run = chunked.solve_chunked(
         theta, y, delta_k, lam_full, lasso=_small_lasso, tol=tol, max_iter=max_iter,
@@ -473,29 +485,34 @@ def _fit_dask(theta, xdot, method, delta, lam, loss, solver, options) -> FitResu
             ConvergenceWarning,
             stacklevel=3,
         )
+    return _dask_result(
+        run, theta, y, one_d, delta_k, lam_k, t0,
+        objective=run.objective, converged=bool(run.converged.all()),
+        column_converged=run.converged, kkt=run.kkt, gap=run.gap,
+        info={"passes": run.passes}, certificate="huber-lasso KKT", certificate_kkt=run.kkt,
+    )  # fmt: skip
+
+
+def _dask_result(run, theta, y, one_d, delta_k, lam_k, t0, **fields) -> FitResult:
+    """The :class:`FitResult` of a chunked run (``fields``: its certificate's), with the
+    inliers and the dual as lazy Dask arrays."""
+    import dask.array as da
+
     r = y - theta @ da.from_array(run.coef)
-    psi = da.clip(r, -delta_k, delta_k)
     inliers = abs(r) <= delta_k
     return FitResult(
         coef=run.coef[:, 0].copy() if one_d else run.coef,
-        objective=run.objective,
-        converged=bool(run.converged.all()),
-        column_converged=run.converged,
         iterations=run.iterations,
-        kkt=run.kkt,
-        gap=run.gap,
         solve_time=time.perf_counter() - t0,
-        method=method,
+        method="admm",
         solver="newton-chunked",
-        loss=loss,
+        loss="huber",
         delta=delta_k,
         lam=lam_k,
         inliers=inliers[:, 0] if one_d else inliers,
-        dual=psi,
+        dual=da.clip(r, -delta_k, delta_k),
         messages=run.messages,
-        info={"passes": run.passes},
-        certificate="huber-lasso KKT",
-        certificate_kkt=run.kkt,
+        **fields,
     )
 
 
@@ -641,7 +658,8 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
     if method not in ("admm", "cvxpy"):
         raise ValueError(f"constraints apply to method='admm' or 'cvxpy'; got {method!r}")
     if chunked.is_dask(theta) or chunked.is_dask(xdot):
-        raise ValueError("constraints are fitted in memory: pass NumPy arrays")
+        return _fit_dask_constrained(theta, xdot, method, delta, lam, loss, solver,
+                                     constraints, options)  # fmt: skip
     theta, y, one_d = check_problem(theta, xdot)
     n, p = y.shape[1], theta.shape[1]
     constraints.check_shape(p, n)
@@ -709,6 +727,66 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
             "mu": cert.mu,
             "solver_status": out.status,
             **out.info,
+        },
+        certificate="constrained huber-lasso KKT",
+        certificate_kkt=np.maximum(cert.column_kkt, cert.feasibility),
+    )
+
+
+def _constrained_subproblem(design, target, lam, constraints) -> np.ndarray:
+    """The in-memory constrained Lasso of a chunked Newton step under constraints (an
+    uncertified step is judged by the chunked solver's own certificate)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return fit(design, target, loss="squared", lam=lam, constraints=constraints).coef
+
+
+def _fit_dask_constrained(
+    theta, xdot, method, delta, lam, loss, solver, constraints, options
+) -> FitResult:  # fmt: skip
+    """:func:`fit` with ``constraints`` on Dask arrays chunked by rows
+    (:func:`robust_sindy.solvers.chunked.solve_chunked_constrained`)."""
+
+    theta, y, one_d, delta_k, lam_k, lam_full, tol, max_iter = _dask_problem(
+        theta, xdot, method, delta, lam, loss, solver, options
+    )
+    n, p = y.shape[1], theta.shape[1]
+    constraints.check_shape(p, n)
+    t0 = time.perf_counter()
+    run = chunked.solve_chunked_constrained(
+        theta, y, delta_k, lam_full, constraints, subproblem=_constrained_subproblem,
+        tol=tol, max_iter=max_iter, progress=bool(options.get("progress", False)),
+    )  # fmt: skip
+    cert = run.certificate
+    converged = bool(cert.kkt <= tol)
+    if not converged:
+        warnings.warn(
+            f"admm on Dask arrays did not certify the constrained problem (relative "
+            f"stationarity {cert.stationarity:.1e}, constraint residual "
+            f"{cert.feasibility:.1e}, tol {tol:g}); returning the last iterate. Try: a "
+            "larger max_iter, or check that the constraints can be met.",
+            ConvergenceWarning,
+            stacklevel=3,
+        )
+    return _dask_result(
+        run,
+        theta,
+        y,
+        one_d,
+        delta_k,
+        lam_k,
+        t0,
+        objective=cert.column_objective,
+        converged=converged,
+        column_converged=np.full(n, converged),
+        kkt=cert.column_kkt,
+        gap=np.full(n, cert.gap),
+        info={
+            "passes": run.passes,
+            "constraint_residual": cert.feasibility,
+            "nu": cert.nu,
+            "mu": cert.mu,
+            "solver_status": run.messages[0],
         },
         certificate="constrained huber-lasso KKT",
         certificate_kkt=np.maximum(cert.column_kkt, cert.feasibility),

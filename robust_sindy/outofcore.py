@@ -33,6 +33,7 @@ from .core.statistics import local_scale
 from .diagnostics import MAX_FLAGGED_FRACTION, MAX_LEFT_OUT
 from .fitting import FitResult, fit
 from .library import BaseLibrary, PolynomialLibrary
+from .selection.constrained import restricted, scaled_fit
 from .selection.rows import SCALE_WINDOW, gross_ratio
 from .timeseries.derivatives import chunk_derivative
 from .timeseries.trajectories import Trajectories
@@ -325,6 +326,8 @@ def _refit_selected(model, theta_k, y_k, coef_sample, l1):
     delta``, which holds its coefficient at exactly 0."""
     coef = np.zeros_like(coef_sample)
     certified = np.ones(coef.shape[1], dtype=bool)
+    if model.constrained_ is not None:
+        return _refit_constrained(model, theta_k, y_k, coef, certified)
     cols = np.flatnonzero((coef_sample != 0).any(axis=0))
     terms = np.flatnonzero((coef_sample != 0).any(axis=1))
     result: FitResult | None = None
@@ -348,4 +351,22 @@ def _refit_selected(model, theta_k, y_k, coef_sample, l1):
     )
     coef[np.ix_(terms, cols)] = np.where(support, np.asarray(result.coef), 0.0)
     certified[cols] = result.column_converged
+    return coef, result, certified
+
+
+def _refit_constrained(model, theta_k, y_k, coef, certified):
+    """The selected terms under the model's constraints refitted as the sample's were
+    (:func:`~robust_sindy.selection.constrained.scaled_fit`: unpenalised, each
+    equation's loss on the scale of its constrained ``delta``, every coefficient off
+    the support held at zero), in one problem over all equations
+    (:func:`~robust_sindy.solvers.chunked.solve_chunked_constrained`)."""
+    refit = model.constrained_
+    support = refit.support
+    if not support.any():
+        return coef, None, certified
+    cols, sub = restricted(refit.constraints, support)
+    options = {k: v for k, v in (model.solver_options or {}).items() if k in ("tol", "max_iter")}
+    fitted, result = scaled_fit(theta_k[:, cols], y_k, model.delta_, sub, **options)
+    coef[cols] = np.where(support[cols], fitted, 0.0)
+    certified[:] = result.converged
     return coef, result, certified

@@ -204,6 +204,62 @@ def test_the_fast_path_agrees_where_nearly_every_residual_is_an_outlier(
     assert (np.abs(y - theta @ fast.coef) > delta).mean() > 0.5  # the regime is reached
 
 
+def _agree_out_of_core(theta, y, delta, lam, con, chunks):
+    da = pytest.importorskip("dask.array")
+    fast = rs.fit(theta, y, delta=delta, lam=lam, constraints=con)
+    rows = -(-theta.shape[0] // chunks)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", rs.ConvergenceWarning)
+        out = rs.fit(
+            da.from_array(theta, chunks=(rows, theta.shape[1])), da.from_array(y, chunks=rows),
+            delta=delta, lam=lam, constraints=con,
+        )  # fmt: skip
+    assert out.solver == "newton-chunked" and out.certificate == "constrained huber-lasso KKT"
+    assert out.converged and out.certificate_kkt.max() <= 1e-8
+    assert out.info["constraint_residual"] <= 1e-10
+    # The in-memory fast path's optimum, to rounding, on the problem's coefficient scale.
+    obj, ref = out.objective.sum(), fast.objective.sum()
+    assert abs(obj - ref) <= 1e-10 * abs(ref)
+    size = np.abs(np.linalg.lstsq(theta, y, rcond=None)[0]).max()
+    assert np.abs(out.coef - fast.coef).max() <= 1e-6 * size
+    return out
+
+
+@settings(
+    max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow], derandomize=True
+)
+@given(
+    seed=st.integers(0, 10_000),
+    m=st.integers(200, 3000),
+    p=st.integers(2, 8),
+    n=st.integers(1, 4),
+    chunks=st.integers(1, 5),
+)
+def test_dask_arrays_are_solved_under_the_constraints_as_in_memory(seed, m, p, n, chunks):
+    _agree_out_of_core(*_random_problem(seed, m, p, n), chunks)
+
+
+@pytest.mark.parametrize("spread, cy", [(1e6, 1.0), (1.0, 1e12), (1.0, 1e-12), (1e3, 1e-6)])
+def test_dask_arrays_under_constraints_in_any_units(spread, cy):
+    col = np.geomspace(1 / np.sqrt(spread), np.sqrt(spread), 5)
+    _agree_out_of_core(*_in_other_units(_random_problem(1, 900, 5, 2), col, cy), 3)
+
+
+def test_the_certificate_finds_the_multipliers_on_its_own():
+    # Without a solver's multipliers the certificate fits them itself: only the
+    # equalities' and the active inequalities' (an inactive row's multiplier would take
+    # a share of the fit and then be set to zero).  Problems with more rows than
+    # coefficients on the support among them.
+    for seed in range(12):
+        theta, y, delta, lam, con = _random_problem(seed, 2000, 2, 1)
+        fast = rs.fit(theta, y, delta=delta, lam=lam, constraints=con)
+        cert = constrained_certificate(
+            theta, y.reshape(len(y), -1), fast.coef.reshape(2, -1), np.atleast_1d(delta), lam,
+            con,
+        )  # fmt: skip
+        assert cert.kkt <= 1e-8, seed
+
+
 @pytest.mark.parametrize("spread, cy", [(1e6, 1.0), (1.0, 1e12), (1.0, 1e-12), (1e3, 1e-6)])
 def test_the_solutions_do_not_depend_on_the_units(spread, cy):
     # Library columns spread over `spread` and derivatives scaled by `cy`: both solvers
@@ -395,9 +451,37 @@ def test_huber_sindy_refuses_constraints_it_cannot_use():
         rs.HuberSINDy(constraints="conservative").fit(x, t)
     with pytest.raises(ValueError, match="shape"):
         rs.HuberSINDy(constraints=rc.energy_preserving(_names(2))).fit(x, t)
+
+
+def test_huber_sindy_on_dask_arrays_refits_under_the_constraints(monkeypatch):
+    # The model is chosen on a sample in memory; the refit on every sample, out of core,
+    # solves the sample's constrained problem (each equation's loss on the scale of its
+    # delta, the support's coefficients free) on the samples the screen kept.
     da = pytest.importorskip("dask.array")
-    with pytest.raises(ValueError, match="in memory"):
-        rs.HuberSINDy(constraints="energy_preserving").fit(da.from_array(x), 0.01)
+    from robust_sindy import outofcore
+    from robust_sindy.selection.constrained import restricted, scaled_fit
+
+    monkeypatch.setattr(outofcore, "DASK_SAMPLE", 1500)
+    t, x = _mean_field(0.01)
+    a, b, c = x.T
+    x_dot = np.stack([0.1 * a - b - a * c, 0.1 * b + a - b * c, -c + a * a + b * b], axis=1)
+    x_dot += 0.01 * x_dot.std(axis=0) * np.random.default_rng(1).normal(size=x_dot.shape)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        model = rs.HuberSINDy(constraints="energy_preserving").fit(
+            da.from_array(x, chunks=(500, 3)), t[1] - t[0], x_dot=da.from_array(x_dot, chunks=500)
+        )
+    refit = model.dask_["refit"]
+    assert model.dask_["samples"] == 3000 and model.dask_["sample"] == 1500
+    assert refit.converged and refit.certificate == "constrained huber-lasso KKT"
+    assert refit.certificate_kkt.max() <= 1e-8
+    assert rc.energy_preserving(model.get_feature_names()).residual(model.coef_.T) <= 1e-10
+    np.testing.assert_array_equal(model.support_, model.coef_sample_ != 0)
+    keep = ~model.screened_.compute()
+    cols, sub = restricted(model.constrained_.constraints, model.constrained_.support)
+    theta = model.library_.transform(x)[keep][:, cols]
+    fitted, _ = scaled_fit(theta, x_dot[keep], model.delta_, sub)
+    np.testing.assert_allclose(model.coef_.T[cols], fitted, rtol=0, atol=1e-9)
 
 
 def test_every_ensemble_member_is_constrained():

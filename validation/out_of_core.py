@@ -9,12 +9,19 @@ drawn from its attractor (a 20 000-sample trajectory, resampled with 1 % noise),
 derivatives of the clean states, 10 % of the rows with gross errors (Gaussian, 50).
 ``delta = 0.5``, ``lam = 1``.
 
+With ``--constraints`` both fits are constrained to an energy-preserving quadratic part
+(:func:`robust_sindy.constraints.energy_preserving`; Lorenz's is), one problem over the
+three equations; the KKT column is then the constrained certificate (stationarity with
+the multipliers, and the constraints' relative residual).
+
 Each measurement runs in a fresh process, so its peak resident memory is its own.
 
     python validation/out_of_core.py 1e6 1e7          # Dask against in memory
     python validation/out_of_core.py 1e8 --dask-only  # Theta 8 GB: Dask alone
+    python validation/out_of_core.py 1e6 1e7 --constraints
 
-Writes ``validation/results/out_of_core.md`` (rows are appended per run).
+Writes ``validation/results/out_of_core.md`` (``out_of_core_constrained.md`` with
+``--constraints``; rows are appended per run).
 """
 
 from __future__ import annotations
@@ -67,7 +74,7 @@ def _anon_bytes() -> int:
     return 0
 
 
-def one(kind: str, m: int, folder: Path) -> dict:
+def one(kind: str, m: int, folder: Path, constrained: bool = False) -> dict:
     """One measurement in this process: wall time, passes, certificate, peak memory."""
     import threading
 
@@ -83,17 +90,20 @@ def one(kind: str, m: int, folder: Path) -> dict:
 
     watcher = threading.Thread(target=sample, daemon=True)
     watcher.start()
+    library = rs.PolynomialLibrary(2)
+    names = library.fit(np.zeros((1, 3))).get_feature_names()
+    extra = {"constraints": rs.constraints.energy_preserving(names)} if constrained else {}
     t0 = time.perf_counter()
     if kind == "dask":
         x = rs.outofcore.from_npy(xs, CHUNK)  # each task reads its own rows
         y = rs.outofcore.from_npy(ys, CHUNK)
-        _, theta = rs.outofcore.dask_library(rs.PolynomialLibrary(2), x)
-        res = rs.fit(theta, y, delta=0.5, lam=1.0)
+        _, theta = rs.outofcore.dask_library(library, x)
+        res = rs.fit(theta, y, delta=0.5, lam=1.0, **extra)
         passes = res.info["passes"]
     else:
         x, y = np.load(xs), np.load(ys)
-        theta = rs.PolynomialLibrary(2).fit_transform(x)
-        res = rs.fit(theta, y, delta=0.5, lam=1.0)
+        theta = library.fit_transform(x)
+        res = rs.fit(theta, y, delta=0.5, lam=1.0, **extra)
         passes = res.info.get("passes", float("nan"))
     seconds = time.perf_counter() - t0
     stop.set()
@@ -105,7 +115,7 @@ def one(kind: str, m: int, folder: Path) -> dict:
         "seconds": seconds,
         "passes": passes,
         "converged": bool(res.converged),
-        "kkt": float(np.max(res.kkt)),
+        "kkt": float(np.max(res.kkt if res.certificate_kkt is None else res.certificate_kkt)),
         "objective": [float(v) for v in res.objective],
         "coef": np.asarray(res.coef).tolist(),
         "peak_gb": peak / 1e9,
@@ -119,12 +129,15 @@ def main() -> None:
     parser.add_argument("sizes", nargs="+", type=float, help="numbers of samples")
     parser.add_argument("--dask-only", action="store_true", help="skip the in-memory fit")
     parser.add_argument("--dir", default="/tmp/robust_sindy_ooc", help="folder for the data")
+    parser.add_argument(
+        "--constraints", action="store_true", help="energy-preserving constraints on both fits"
+    )
     parser.add_argument("--one", nargs=2, metavar=("KIND", "M"), help=argparse.SUPPRESS)
     args = parser.parse_args()
     folder = Path(args.dir)
     folder.mkdir(parents=True, exist_ok=True)
     if args.one:
-        print(json.dumps(one(args.one[0], int(float(args.one[1])), folder)))
+        print(json.dumps(one(args.one[0], int(float(args.one[1])), folder, args.constraints)))
         return
     lines = []
     for m in (int(s) for s in args.sizes):
@@ -132,7 +145,8 @@ def main() -> None:
         runs = {}
         for kind in ("dask",) if args.dask_only else ("dask", "memory"):
             out = subprocess.run(
-                [sys.executable, __file__, "--dir", str(folder), "--one", kind, str(m), "0"],
+                [sys.executable, __file__, "--dir", str(folder), "--one", kind, str(m), "0"]
+                + (["--constraints"] if args.constraints else []),
                 capture_output=True, text=True, check=True,
             )  # fmt: skip
             runs[kind] = json.loads(out.stdout.strip().splitlines()[-1])
@@ -155,11 +169,13 @@ def main() -> None:
             row += " not run | | |"
         print(row, flush=True)
         lines.append(row)
-    out = HERE / "results" / "out_of_core.md"
+    flag = " --constraints" if args.constraints else ""
+    out = HERE / "results" / f"out_of_core{'_constrained' if args.constraints else ''}.md"
     if not out.exists():
         out.write_text(
-            "# Out-of-core fits (Dask)\n\n"
-            "From `python validation/out_of_core.py` (see its docstring for the data). "
+            f"# Out-of-core fits (Dask){' under constraints' if args.constraints else ''}\n\n"
+            f"From `python validation/out_of_core.py{flag}` "
+            "(see its docstring for the data). "
             "Dask: states and derivatives read chunk by chunk from `.npy` files "
             "(`robust_sindy.outofcore.from_npy`), library evaluated chunk by chunk "
             "(10^6 rows), Dask's threaded scheduler on 2 cores. Memory: the largest "

@@ -35,7 +35,12 @@ import scipy.optimize
 
 from .certificates import certify, column_norms, kkt_from_gradient
 
-__all__ = ["ConstrainedCertificate", "LinearConstraints", "constrained_certificate"]
+__all__ = [
+    "ConstrainedCertificate",
+    "LinearConstraints",
+    "certificate_from_sums",
+    "constrained_certificate",
+]
 
 #: Relative slack below which an inequality counts as active (its multiplier free).
 ACTIVE_TOL = 1e-9
@@ -203,6 +208,9 @@ class ConstrainedCertificate:
         on inactive rows).
     column_objective, column_kkt : ndarray (n,)
         The objective and the stationarity violation of each equation.
+    residual, psi : ndarray (m, n) or None
+        The residuals and ``psi_delta`` of them (None out of core, where only sums over
+        the rows are formed: :func:`certificate_from_sums`).
     """
 
     objective: float
@@ -214,8 +222,8 @@ class ConstrainedCertificate:
     mu: np.ndarray
     column_objective: np.ndarray
     column_kkt: np.ndarray
-    residual: np.ndarray
-    psi: np.ndarray
+    residual: np.ndarray | None
+    psi: np.ndarray | None
 
     @property
     def rel_gap(self) -> float:
@@ -264,9 +272,13 @@ def _multipliers(
     z0 = np.concatenate([nu0, np.where(active, np.maximum(mu0, 0.0), 0.0)])
     if given and max(np.abs(v).max(initial=0.0) for v in parts(z0)) <= exact:
         return z0[:r_eq], z0[r_eq:]  # the given multipliers already certify: no search
-    if on.any():
-        ls = np.linalg.lstsq(c[:, on].T, (g - target)[on], rcond=None)[0]
-        ls[r_eq:] = np.where(active, np.maximum(ls[r_eq:], 0.0), 0.0)
+    free = np.concatenate([np.ones(r_eq, dtype=bool), np.asarray(active, dtype=bool)])
+    if on.any() and free.any():
+        # Only the multipliers that may be nonzero enter the fit: an inactive row's would
+        # take a share of it and then be set to zero.
+        ls = np.zeros(r_eq + r_ub)
+        ls[free] = np.linalg.lstsq(c[free][:, on].T, (g - target)[on], rcond=None)[0]
+        ls[r_eq:] = np.maximum(ls[r_eq:], 0.0)
         if fun(ls)[0] < fun(z0)[0]:
             z0 = ls
     res = scipy.optimize.minimize(
@@ -289,21 +301,35 @@ def constrained_certificate(
     lam = np.broadcast_to(np.asarray(lam, dtype=float), (p, n))
     norms = column_norms(theta)
     cert = certify(theta, y, xi, delta, lam, norms)
+    return certificate_from_sums(
+        xi, cert.grad, lam, norms, column_norms(cert.psi), cert.objective,
+        np.einsum("ij,ij->j", y, cert.psi), constraints, nu, mu, cert.residual, cert.psi,
+    )  # fmt: skip
+
+
+def certificate_from_sums(
+    xi, grad, lam, norms, psi_norm, objective, y_psi, constraints: LinearConstraints,
+    nu=None, mu=None, residual=None, psi=None,
+) -> ConstrainedCertificate:  # fmt: skip
+    """:func:`constrained_certificate` from sums over the rows: ``grad = Theta^T psi``
+    (p, n), the library's column norms (p,), ``||psi_k||`` (n,), each equation's
+    objective (n,, its Huber loss plus its L1 term) and ``y_k^T psi_k`` (n,); what data
+    out of core give in one pass (:mod:`robust_sindy.solvers.chunked`).  ``residual``
+    and ``psi`` (m, n), when known, are kept in the result."""
+    p, n = xi.shape
+    lam = np.broadcast_to(np.asarray(lam, dtype=float), (p, n))
     c_eq, c_ub = constraints.A_eq, constraints.A_ub
     active = constraints.active(xi)
     given = nu is not None and mu is not None
     nu0 = np.zeros(c_eq.shape[0]) if nu is None else np.asarray(nu, dtype=float)
     mu0 = np.zeros(c_ub.shape[0]) if mu is None else np.asarray(mu, dtype=float)
-    psi_norm = column_norms(cert.psi)
     # The support: coefficients whose proximal-gradient step |xi_j| / t_j is not
     # negligible on the certificate's scale (rounding where the optimum has a zero
     # would otherwise pin the multipliers to a sign it does not have).
     scale = np.maximum(lam, norms[:, None] * psi_norm[None, :])
     on = np.abs(xi) * norms[:, None] ** 2 > 1e-12 * scale
-    nu, mu = _multipliers(
-        cert.grad, xi, lam, c_eq, c_ub, active, nu0, mu0, on, norms, scale, given=given
-    )
-    h = cert.grad - (c_eq.T @ nu + c_ub.T @ mu).reshape((p, n), order="F")
+    nu, mu = _multipliers(grad, xi, lam, c_eq, c_ub, active, nu0, mu0, on, norms, scale, given)
+    h = grad - (c_eq.T @ nu + c_ub.T @ mu).reshape((p, n), order="F")
     column_kkt = kkt_from_gradient(xi, h, lam, norms, psi_norm)
     stationarity = float(column_kkt.max())
     feasibility = constraints.residual(xi)
@@ -312,20 +338,19 @@ def constrained_certificate(
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = np.where(absh > 0, lam / absh, np.inf)
     s = min(1.0, float(ratio.min()))
-    linear = float(np.einsum("ij,ij->", y, cert.psi))
-    linear -= float(nu @ constraints.b_eq + mu @ constraints.b_ub)
+    linear = float(np.sum(y_psi)) - float(nu @ constraints.b_eq + mu @ constraints.b_ub)
     dual = s * linear - 0.5 * s**2 * float(psi_norm @ psi_norm)
-    objective = float(cert.objective.sum())
+    total = float(np.sum(objective))
     return ConstrainedCertificate(
-        objective=objective,
+        objective=total,
         kkt=max(stationarity, feasibility),
         stationarity=stationarity,
         feasibility=feasibility,
-        gap=max(objective - dual, 0.0),
+        gap=max(total - dual, 0.0),
         nu=nu,
         mu=mu,
-        column_objective=cert.objective,
+        column_objective=np.asarray(objective, dtype=float),
         column_kkt=column_kkt,
-        residual=cert.residual,
-        psi=cert.psi,
+        residual=residual,
+        psi=psi,
     )

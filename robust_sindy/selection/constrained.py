@@ -73,6 +73,7 @@ __all__ = [
     "constrained_significance",
     "constrained_stability",
     "held_off_support",
+    "restricted",
     "scaled_fit",
     "tied_closure",
 ]
@@ -196,6 +197,8 @@ class ConstrainedRefit:
     chosen : int
         The index of the chosen support among the candidates: the lowest score, less
         the terms the significance rounds left out.
+    constraints : LinearConstraints, optional
+        The constraints the refit meets (built from the model's ``constraints``).
     """
 
     coef: np.ndarray
@@ -212,6 +215,7 @@ class ConstrainedRefit:
     candidates: np.ndarray | None = None
     scores: np.ndarray | None = None
     chosen: int = -1
+    constraints: LinearConstraints | None = None
 
     def margins(self) -> tuple[np.ndarray, np.ndarray]:
         """Per equation, the summed criterion of the best other candidate minus the
@@ -253,14 +257,16 @@ def held_off_support(constraints: LinearConstraints, support) -> LinearConstrain
 
 def scaled_fit(
     theta, y, delta, constraints: LinearConstraints, *, method: str = "admm", solver=None,
-    warm_start=None,
+    warm_start=None, **options,
 ):  # fmt: skip
     """The unpenalised fit of ``y`` (m, n) on ``theta`` (m, p) under ``constraints``
     with each equation's loss on the scale of its ``delta`` (n,):
     ``sum_k H_1(r_k / delta_k) = sum_k H_{delta_k}(r_k) / delta_k^2`` (see the module
     docstring), solved by :func:`robust_sindy.fit` on the targets and coefficients
     divided by ``delta_k`` (the constraints' rows rescaled to match), from
-    ``warm_start`` (p, n; the fast path's).  Returns ``(coef, result)``: the
+    ``warm_start`` (p, n; the fast path's), with further ``options`` for
+    :func:`robust_sindy.fit` (Dask arrays are solved out of core).  Returns
+    ``(coef, result)``: the
     coefficients in the units of ``y``, and the :class:`~robust_sindy.FitResult` of the
     rescaled problem with its coefficients, per-equation objectives (``H_{delta_k}``
     losses), thresholds and dual (``psi_{delta_k}(r_k)``) back in those units; its
@@ -274,7 +280,6 @@ def scaled_fit(
         constraints.A_ub * unit, constraints.b_ub,
     )  # fmt: skip
     method = method if method in ("admm", "cvxpy") else "admm"
-    options = {}
     if method == "admm" and warm_start is not None:
         options["warm_start"] = np.asarray(warm_start, dtype=float) / delta
     result = fit(
@@ -288,6 +293,22 @@ def scaled_fit(
     return result.coef, result
 
 
+def restricted(constraints: LinearConstraints, support) -> tuple[np.ndarray, LinearConstraints]:
+    """The library columns some equation uses on ``support`` (p, n), and
+    ``constraints`` with every coefficient off the support held at zero, on those
+    columns only (the rows left that bind nothing are dropped): the problem a refit on
+    ``support`` solves."""
+    p, n = support.shape
+    cols = np.flatnonzero(support.any(axis=1))
+    held = held_off_support(constraints, support)
+    idx = (cols[:, None] + p * np.arange(n)[None, :]).ravel(order="F")
+    rows = (held.A_eq[:, idx] != 0).any(axis=1) | (held.b_eq != 0)
+    sub = LinearConstraints(
+        cols.size, n, held.A_eq[rows][:, idx], held.b_eq[rows], held.A_ub[:, idx], held.b_ub,
+    )  # fmt: skip
+    return cols, sub
+
+
 def _refit(
     kept: Problem, support, delta, constraints: LinearConstraints, method, solver, start=None
 ):  # fmt: skip
@@ -295,16 +316,10 @@ def _refit(
     (every other coefficient is zero), from ``start`` (p, n).  Returns
     ``(coef, result)``."""
     p, n = support.shape
-    cols = np.flatnonzero(support.any(axis=1))
     coef = np.zeros((p, n))
-    if cols.size == 0:
+    if not support.any():
         return coef, None
-    held = held_off_support(constraints, support)
-    idx = (cols[:, None] + p * np.arange(n)[None, :]).ravel(order="F")
-    rows = (held.A_eq[:, idx] != 0).any(axis=1) | (held.b_eq != 0)
-    sub = LinearConstraints(
-        cols.size, n, held.A_eq[rows][:, idx], held.b_eq[rows], held.A_ub[:, idx], held.b_ub,
-    )  # fmt: skip
+    cols, sub = restricted(constraints, support)
     warm = None if start is None else np.where(support[cols], np.asarray(start)[cols], 0.0)
     fitted, result = scaled_fit(
         kept.theta[:, cols], kept.y, delta, sub, method=method, solver=solver, warm_start=warm

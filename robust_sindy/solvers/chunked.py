@@ -24,6 +24,11 @@ With the inlier set fixed the model is exact, so the method ends in a few steps 
 the inliers settle.  The certificate is the in-memory one (:func:`kkt_from_gradient`,
 residuals below their floating-point resolution forgiven per chunk), from sums over
 rows.
+
+Under linear constraints across equations (:func:`solve_chunked_constrained`) the
+passes are the same; the step is one subproblem over all equations under the
+constraints, with one step length for all, and the certificate the constrained one
+(:func:`robust_sindy.core.constraints.certificate_from_sums`).
 """
 
 from __future__ import annotations
@@ -37,7 +42,7 @@ import scipy.linalg
 from ..core.certificates import gap_from_sums, kkt_from_gradient, rounding_free
 from ..core.losses import huber, huber_psi
 
-__all__ = ["ChunkedRun", "is_dask", "solve_chunked"]
+__all__ = ["ChunkedRun", "is_dask", "solve_chunked", "solve_chunked_constrained"]
 
 STEPS = 0.5 ** np.arange(8)  # step lengths tried in one pass
 ARMIJO = 1e-4
@@ -59,6 +64,8 @@ class ChunkedRun:
     iterations: np.ndarray
     passes: int
     messages: list = field(default_factory=list)
+    #: The constrained certificate (:func:`solve_chunked_constrained`), else None.
+    certificate: object = None
 
 
 def _blocks(theta, y):
@@ -187,13 +194,12 @@ def _deficient(H, col) -> bool:
     return bool(ev[0] <= 1e-10 * max(ev[-1], 0.0) or ev[-1] <= 0)
 
 
-def _lasso_step(H, g, xi, lam, col, lasso):
-    """Minimiser ``z`` of ``g^T (z - xi) + (z - xi)^T H (z - xi) / 2 + sum lam |z|``.
-
-    In equilibrated coordinates ``u = col * z``: with ``Ht = H / (col col^T)`` and
-    ``Ht + mu I = L^T L``, the subproblem is the Lasso ``||L u - c||^2 / 2 +
-    sum (lam / col) |u|`` with ``c = L (col xi) - L^-T (g / col)``.
-    """
+def _subproblem(H, g, xi, col):
+    """The factor ``L`` and target ``c`` of the Newton step's model in equilibrated
+    coordinates ``u = col * z``: ``g^T (z - xi) + (z - xi)^T H (z - xi) / 2`` is
+    ``||L u - c||^2 / 2`` up to a constant, with ``Ht = H / (col col^T)``, ``Ht + mu I =
+    L^T L`` (``mu`` a Levenberg-Marquardt term where ``Ht`` is singular) and ``c = L (col
+    xi) - L^-T (g / col)``."""
     p = H.shape[0]
     Ht = H / np.outer(col, col)
     mu = 0.0
@@ -209,7 +215,47 @@ def _lasso_step(H, g, xi, lam, col, lasso):
     # c = L u - L^-T g / col: the step's right-hand side from the gradient alone, so
     # near the optimum it is not the difference of two large numbers.
     c = L @ (col * xi) - scipy.linalg.solve_triangular(L, g / col, trans="T")
+    return L, c
+
+
+def _lasso_step(H, g, xi, lam, col, lasso):
+    """Minimiser ``z`` of ``g^T (z - xi) + (z - xi)^T H (z - xi) / 2 + sum lam |z|``: the
+    Lasso ``||L u - c||^2 / 2 + sum (lam / col) |u|`` of :func:`_subproblem`."""
+    L, c = _subproblem(H, g, xi, col)
     return lasso(L, c, lam / col) / col
+
+
+def _joint_step(hs, g, xi, lam, col, constraints, subproblem):
+    """Minimiser ``Z`` (p, n) of ``sum_k [g_k^T (z_k - xi_k) + (z_k - xi_k)^T H_k (z_k -
+    xi_k) / 2] + sum lam |Z|`` under ``constraints`` (on ``vec(Z)``): one Lasso over all
+    equations, its design the block diagonal of the equations' factors
+    (:func:`_subproblem`), the constraints' columns scaled to the equilibrated
+    coordinates, solved in memory by ``subproblem(design, target, lam, constraints)``."""
+    from ..core.constraints import LinearConstraints
+
+    p, n = xi.shape
+    parts = [_subproblem(hs[k], g[:, k], xi[:, k], col) for k in range(n)]
+    scale = np.tile(col, n)  # u = scale * vec(Z)
+    joint = LinearConstraints(
+        p * n, 1, constraints.A_eq / scale, constraints.b_eq, constraints.A_ub / scale,
+        constraints.b_ub,
+    )  # fmt: skip
+    u = subproblem(
+        scipy.linalg.block_diag(*(L for L, _ in parts)),
+        np.concatenate([c for _, c in parts]),
+        (lam / col[:, None]).ravel(order="F"),
+        joint,
+    )
+    return (np.asarray(u, dtype=float).ravel() / scale).reshape((p, n), order="F")
+
+
+def _start(theta, y):
+    """The blocks, the first pass's sums (:func:`_first`), and the columns' norms (zero
+    norms as 1 for the equilibration, and as they are)."""
+    theta, y = _blocks(theta, y)
+    start = _reduce(_first, theta, y)
+    col_sq = start["col_sq"]
+    return theta, y, start, np.sqrt(np.where(col_sq > 0, col_sq, 1.0)), np.sqrt(col_sq)
 
 
 def solve_chunked(
@@ -232,13 +278,9 @@ def solve_chunked(
     """
     from tqdm import tqdm
 
-    theta, y = _blocks(theta, y)
+    theta, y, start, col, col_norms = _start(theta, y)
     p, n = theta.shape[1], y.shape[1]
-    start = _reduce(_first, theta, y)
     passes = 1
-    col_sq = start["col_sq"]
-    col = np.sqrt(np.where(col_sq > 0, col_sq, 1.0))
-    col_norms = np.sqrt(col_sq)
     xi = np.zeros((p, n))
     for k in range(n):  # least-squares (Lasso) start, from the Gram matrix
         xi[:, k] = _lasso_step(start["G"], -start["b"][:, k], np.zeros(p), lam[:, k], col, lasso)
@@ -304,3 +346,114 @@ def solve_chunked(
         for c, it, v in zip(converged, iterations, kkt, strict=True)
     ]
     return ChunkedRun(xi, obj, kkt, gap, converged, iterations, passes, messages)
+
+
+def solve_chunked_constrained(
+    theta,
+    y,
+    delta: np.ndarray,
+    lam: np.ndarray,
+    constraints,
+    *,
+    subproblem,
+    tol: float = 1e-8,
+    max_iter: int = 50,
+    progress: bool = False,
+) -> ChunkedRun:
+    """The Huber-Lasso of every column at once under linear ``constraints`` across
+    equations (a :class:`~robust_sindy.core.constraints.LinearConstraints` on
+    ``vec(Xi)``), on Dask arrays ``theta`` (m, p), ``y`` (m, n).
+
+    The passes are those of :func:`solve_chunked`; the step is one proximal Newton
+    subproblem over all equations under the constraints (:func:`_joint_step`: the
+    equations' quadratic models side by side, a Lasso under linear constraints solved
+    in memory by ``subproblem(design, target, lam, constraints)``), first from the
+    least-squares model (the Gram matrix), whose answer meets the constraints; every
+    later point is on the segment between two such points, so it meets them too.  The
+    step length is common to all equations (the constraints tie them), by Armijo on
+    the total objective.  The certificate is the constrained one from sums over the
+    rows (:func:`~robust_sindy.core.constraints.certificate_from_sums`): ``kkt`` holds
+    each equation's stationarity violation with the multipliers' term, and the
+    problem's constraint residual is in the messages.  Returns a :class:`ChunkedRun`
+    whose ``gap`` is the problem's duality gap on every column, with the certificate as
+    ``certificate``.
+    """
+    from tqdm import tqdm
+
+    from ..core.constraints import certificate_from_sums
+
+    theta, y, start, col, col_norms = _start(theta, y)
+    p, n = theta.shape[1], y.shape[1]
+    passes = 1
+    zero = np.zeros((p, n))
+    xi = _joint_step([start["G"]] * n, -start["b"], zero, lam, col, constraints, subproblem)
+    stats = _reduce(_stats, theta, y, xi, delta, True)
+    passes += 1
+    steps = 0
+
+    def certificate(stats, xi):
+        obj = stats["obj"] + (lam * np.abs(xi)).sum(axis=0)
+        return certificate_from_sums(
+            xi, stats["g"], lam, col_norms, np.sqrt(stats["psi_sq"]), obj, stats["y_psi"],
+            constraints,
+        )  # fmt: skip
+
+    bar = tqdm(total=max_iter, desc="chunked Newton (constrained)", disable=not progress,
+               leave=False)  # fmt: skip
+    cert = certificate(stats, xi)
+    majorise = False
+    for _ in range(max_iter):
+        if cert.kkt <= tol:
+            break
+        deficient = [k for k in range(n) if majorise or _deficient(stats["H"][k], col)]
+        if deficient:  # the majoriser's (IRLS) model: too few inliers, or a failed step
+            stats["M"] = _reduce(_stats, theta, y, xi, delta, False, True)["M"]
+            passes += 1
+        hs = [stats["M"][k] if k in deficient else stats["H"][k] for k in range(n)]
+        d = _joint_step(hs, -stats["g"], xi, lam, col, constraints, subproblem) - xi
+        steps += 1
+        trial = _reduce(_trial, theta, y, xi, d, delta, True)
+        passes += 1
+        pen0 = float((lam * np.abs(xi)).sum())
+        f0 = float(stats["obj"].sum()) + pen0
+        pen = np.array([(lam * np.abs(xi + s * d)).sum() for s in STEPS])
+        f = trial["trial"].sum(axis=1) + pen
+        decrease = float(np.einsum("pk,pk->", -stats["g"], d)) + pen[0] - pen0
+        slack = ROUNDING * abs(f0)
+        ok = np.flatnonzero(f <= f0 + ARMIJO * STEPS * min(decrease, 0.0) + slack)
+        if ok.size:
+            step = STEPS[ok[0]]
+        elif f.min() <= f0:
+            step = STEPS[int(np.argmin(f))]
+        elif not majorise:
+            # The inliers' model overshoots far from the optimum (many residuals beyond
+            # delta, a step that moves them all): the majoriser's step decreases the
+            # objective, so it is taken until a Newton step is accepted again.
+            majorise = True
+            continue
+        else:
+            break  # no decrease along the majoriser's direction either: stalled
+        majorise = False
+        if step == 1.0:
+            xi, stats = xi + d, trial["next"]
+        else:
+            xi = xi + step * d
+            stats = _reduce(_stats, theta, y, xi, delta, True)
+            passes += 1
+        cert = certificate(stats, xi)
+        bar.update(1)
+    bar.close()
+    kkt = np.maximum(cert.column_kkt, cert.feasibility)
+    converged = np.full(n, cert.kkt <= tol)
+    status = (
+        "certified"
+        if cert.kkt <= tol
+        else f"not certified after {steps} steps (relative stationarity "
+        f"{cert.stationarity:.1e}, constraint residual {cert.feasibility:.1e})"
+    )
+    run = ChunkedRun(
+        xi, cert.column_objective, kkt, np.full(n, cert.gap), converged,
+        np.full(n, steps), passes, [status] * n,
+    )  # fmt: skip
+    run.certificate = cert
+    return run

@@ -229,7 +229,10 @@ def _inlier_system(theta, y, delta, outside, out_sign, previous=None):
             full = theta.T @ theta
         out = theta[outside[:, k]]  # the full Gram matrix less the outliers' rows
         grams[k] = full - out.T @ out
-    rhs = theta.T @ np.where(outside, delta[None, :] * out_sign, y)
+    # With the squared loss (delta = inf) there are no outliers; inf * 0 off them.
+    with np.errstate(invalid="ignore"):
+        clipped = delta[None, :] * out_sign
+    rhs = theta.T @ np.where(outside, clipped, y)
     return grams, rhs
 
 
