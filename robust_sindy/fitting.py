@@ -228,7 +228,8 @@ def fit(
         solver's own status.  ADMM options: ``rho, alpha, max_iter, eps, tol,
         check_every, polish``.  Dask arrays are solved out of core by the same
         certificate (:func:`robust_sindy.solvers.chunked.solve_chunked_constrained`;
-        options ``tol, max_iter, progress``).
+        options ``tol, max_iter, progress`` and ``warm_start``, coefficients that meet
+        the constraints).
     **options
         Solver options.  ADMM: ``rho, kappa, alpha, equilibrate, adaptive_rho, polish,
         max_iter, eps_abs, eps_rel, tol, gap_tol, check_every, newton_steps,
@@ -430,9 +431,10 @@ def _advice(method, solver_name, out, bad, opts, tol, delta_k, y, loss) -> str:
     return advice
 
 
-def _dask_problem(theta, xdot, method, delta, lam, loss, solver, options):
+def _dask_problem(theta, xdot, method, delta, lam, loss, solver, options, extra=()):
     """The checks of a fit on Dask arrays: ``(theta, y (m, n), one_d, delta (n,), lam as
-    given (checked), lam (p, n), tol, max_iter)``."""
+    given (checked), lam (p, n), tol, max_iter)``; ``extra`` option names are allowed
+    beside ``tol, max_iter, progress``."""
     import dask.array as da
 
     if method != "admm" or loss != "huber" or solver is not None:
@@ -440,7 +442,8 @@ def _dask_problem(theta, xdot, method, delta, lam, loss, solver, options):
             "Dask arrays are solved by the fast path only: method='admm', loss='huber' "
             f"(got method={method!r}, loss={loss!r})"
         )
-    _reject_unknown(options, {"tol", "max_iter", "progress"}, "admm on Dask arrays")
+    known = {"tol", "max_iter", "progress", *extra}
+    _reject_unknown(options, known, "admm on Dask arrays" + (" with constraints" if extra else ""))
     tol = check_positive(options.get("tol", DEFAULT_OPTIONS["tol"]), "tol")
     max_iter = check_int(options.get("max_iter", 50), "max_iter", 1)
     theta = da.asarray(theta)
@@ -748,14 +751,19 @@ def _fit_dask_constrained(
     (:func:`robust_sindy.solvers.chunked.solve_chunked_constrained`)."""
 
     theta, y, one_d, delta_k, lam_k, lam_full, tol, max_iter = _dask_problem(
-        theta, xdot, method, delta, lam, loss, solver, options
+        theta, xdot, method, delta, lam, loss, solver, options, extra=("warm_start",)
     )
     n, p = y.shape[1], theta.shape[1]
     constraints.check_shape(p, n)
+    warm = options.get("warm_start")
+    if warm is not None:  # coefficients only: a dual of every row is not kept out of core
+        warm = warm.coef if isinstance(warm, FitResult) else warm
+        warm = warm[0] if isinstance(warm, tuple) else warm
+        warm = check_coef(warm, p, n, one_d, "warm_start").reshape(p, n)
     t0 = time.perf_counter()
     run = chunked.solve_chunked_constrained(
         theta, y, delta_k, lam_full, constraints, subproblem=_constrained_subproblem,
-        tol=tol, max_iter=max_iter, progress=bool(options.get("progress", False)),
+        tol=tol, max_iter=max_iter, progress=bool(options.get("progress", False)), start=warm,
     )  # fmt: skip
     cert = run.certificate
     converged = bool(cert.kkt <= tol)

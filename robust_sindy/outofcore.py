@@ -359,14 +359,18 @@ def _refit_constrained(model, theta_k, y_k, coef, certified):
     (:func:`~robust_sindy.selection.constrained.scaled_fit`: unpenalised, each
     equation's loss on the scale of its constrained ``delta``, every coefficient off
     the support held at zero), in one problem over all equations
-    (:func:`~robust_sindy.solvers.chunked.solve_chunked_constrained`)."""
+    (:func:`~robust_sindy.solvers.chunked.solve_chunked_constrained`), from the sample's
+    coefficients."""
     refit = model.constrained_
     support = refit.support
     if not support.any():
         return coef, None, certified
     cols, sub = restricted(refit.constraints, support)
     options = {k: v for k, v in (model.solver_options or {}).items() if k in ("tol", "max_iter")}
-    fitted, result = scaled_fit(theta_k[:, cols], y_k, model.delta_, sub, **options)
+    # From the sample's answer, which meets the constraints: near the optimum on all rows.
+    fitted, result = scaled_fit(
+        theta_k[:, cols], y_k, model.delta_, sub, warm_start=model.coef_.T[cols], **options
+    )
     coef[cols] = np.where(support[cols], fitted, 0.0)
     certified[:] = result.converged
     return coef, result, certified

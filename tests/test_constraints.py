@@ -245,6 +245,24 @@ def test_dask_arrays_under_constraints_in_any_units(spread, cy):
     _agree_out_of_core(*_in_other_units(_random_problem(1, 900, 5, 2), col, cy), 3)
 
 
+def test_dask_arrays_under_constraints_start_from_a_point_that_meets_them():
+    # The answer in memory certifies out of core in the one pass that measures it; a
+    # start that violates the constraints is not used (the least-squares start is).
+    da = pytest.importorskip("dask.array")
+    theta, y, delta, lam, con = _random_problem(4, 1500, 5, 3)
+    fast = rs.fit(theta, y, delta=delta, lam=lam, constraints=con)
+    chunks = (500, theta.shape[1]), 500
+    lazy = da.from_array(theta, chunks=chunks[0]), da.from_array(y, chunks=chunks[1])
+    warm = rs.fit(*lazy, delta=delta, lam=lam, constraints=con, warm_start=fast.coef)
+    assert warm.converged and warm.info["passes"] == 1
+    cold = rs.fit(*lazy, delta=delta, lam=lam, constraints=con)
+    off = rs.fit(*lazy, delta=delta, lam=lam, constraints=con, warm_start=fast.coef + 1.0)
+    assert off.converged and off.info["passes"] == cold.info["passes"] > 1
+    np.testing.assert_array_equal(off.coef, cold.coef)
+    with pytest.raises(ValueError, match="warm_start"):
+        rs.fit(*lazy, delta=delta, lam=lam, constraints=con, warm_start=fast.coef[:2])
+
+
 def test_the_certificate_finds_the_multipliers_on_its_own():
     # Without a solver's multipliers the certificate fits them itself: only the
     # equalities' and the active inequalities' (an inactive row's multiplier would take

@@ -45,6 +45,9 @@ from ..core.losses import huber, huber_psi
 __all__ = ["ChunkedRun", "is_dask", "solve_chunked", "solve_chunked_constrained"]
 
 STEPS = 0.5 ** np.arange(8)  # step lengths tried in one pass
+#: Relative constraint residual up to which a given start of
+#: :func:`solve_chunked_constrained` counts as meeting the constraints.
+START_RESIDUAL = 1e-10
 ARMIJO = 1e-4
 ROUNDING = 1e-12  # relative level below which objective changes are not resolved
 
@@ -103,6 +106,14 @@ def _stats(th, yb, xi, delta, want_gram: bool, want_majoriser: bool = False):
         with np.errstate(divide="ignore"):
             w = np.minimum(1.0, delta / np.abs(r))
         out["M"] = np.stack([(th * w[:, [k]]).T @ th for k in range(r.shape[1])])
+    return out
+
+
+def _stats_and_norms(th, yb, xi, delta):
+    """:func:`_stats` with the inlier Gram matrices, and the columns' sums of squares."""
+    out = _stats(th, yb, xi, delta, True)
+    th = np.asarray(th, dtype=float)
+    out["col_sq"] = np.einsum("ij,ij->j", th, th)
     return out
 
 
@@ -359,6 +370,7 @@ def solve_chunked_constrained(
     tol: float = 1e-8,
     max_iter: int = 50,
     progress: bool = False,
+    start=None,
 ) -> ChunkedRun:
     """The Huber-Lasso of every column at once under linear ``constraints`` across
     equations (a :class:`~robust_sindy.core.constraints.LinearConstraints` on
@@ -376,19 +388,31 @@ def solve_chunked_constrained(
     each equation's stationarity violation with the multipliers' term, and the
     problem's constraint residual is in the messages.  Returns a :class:`ChunkedRun`
     whose ``gap`` is the problem's duality gap on every column, with the certificate as
-    ``certificate``.
+    ``certificate``.  ``start`` (p, n), a point that meets the constraints (relative
+    residual at most :data:`START_RESIDUAL`; e.g. the answer on a sample of the rows),
+    replaces the least-squares start; a point that does not is not used.
     """
     from tqdm import tqdm
 
     from ..core.constraints import certificate_from_sums
 
-    theta, y, start, col, col_norms = _start(theta, y)
+    theta, y = _blocks(theta, y)
     p, n = theta.shape[1], y.shape[1]
-    passes = 1
-    zero = np.zeros((p, n))
-    xi = _joint_step([start["G"]] * n, -start["b"], zero, lam, col, constraints, subproblem)
-    stats = _reduce(_stats, theta, y, xi, delta, True)
-    passes += 1
+    given = None if start is None else np.asarray(start, dtype=float).reshape(p, n)
+    if given is not None and constraints.residual(given) <= START_RESIDUAL:
+        xi = given.copy()  # the start's sums and the columns' norms in one pass
+        stats = _reduce(_stats_and_norms, theta, y, xi, delta)
+        passes = 1
+        col_sq = stats["col_sq"]
+        col = np.sqrt(np.where(col_sq > 0, col_sq, 1.0))
+    else:
+        theta, y, first, col, _ = _start(theta, y)
+        col_sq = first["col_sq"]
+        zero = np.zeros((p, n))
+        xi = _joint_step([first["G"]] * n, -first["b"], zero, lam, col, constraints, subproblem)
+        stats = _reduce(_stats, theta, y, xi, delta, True)
+        passes = 2
+    col_norms = np.sqrt(col_sq)
     steps = 0
 
     def certificate(stats, xi):
