@@ -207,6 +207,9 @@ class Diagnostics:
         without); a warning says so above 1e-8, or when the constrained refit was not
         certified (``constraints_certified``).
     constraints_certified : bool
+    constraints_status : str
+        The constrained refit's solver status (why it was not certified, when it was
+        not).
     constrained_delta : ndarray (n,)
         With ``constraints``, the Huber threshold of the model under them (measured on
         the residuals of the constrained fit on every term; NaN without).
@@ -373,6 +376,7 @@ class Diagnostics:
     selected_terms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     constraint_residual: float = float("nan")
     constraints_certified: bool = True
+    constraints_status: str = ""
     constrained_delta: np.ndarray = None
     energy_residual: float = float("nan")
     trapping_eigenvalue: float = float("nan")
@@ -743,9 +747,11 @@ RULES: tuple[Rule, ...] = (
         lambda d: (not d.constraints_certified) or d.constraint_residual > 1e-8,
         lambda d, _: (
             f"the constrained refit was {'' if d.constraints_certified else 'not '}"
-            f"certified and the constraints' relative residual is {d.constraint_residual:.1e}"
+            f"certified"
+            + ("" if d.constraints_certified else f" ({d.constraints_status})")
+            + f" and the constraints' relative residual is {d.constraint_residual:.1e}"
             ": check that the constraints can be met by the selected terms and those tied "
-            "to them (see result_ and robust_sindy.selection.constrained)"
+            "to them (see constrained_ and robust_sindy.selection.constrained)"
         ),
     ),
     Rule(
@@ -1097,6 +1103,7 @@ def diagnose(
         samples_needed=samples_needed(selected, p),
         constraint_residual=float("nan") if constrained is None else constrained.residual,
         constraints_certified=True if constrained is None else constrained.converged,
+        constraints_status="" if constrained is None else constrained.status,
         constrained_delta=(
             np.full(n, np.nan) if constrained is None else np.asarray(constrained.delta, float)
         ),

@@ -263,6 +263,64 @@ def test_dask_arrays_under_constraints_start_from_a_point_that_meets_them():
         rs.fit(*lazy, delta=delta, lam=lam, constraints=con, warm_start=fast.coef[:2])
 
 
+def test_an_exact_record_under_constraints_needs_no_admm(monkeypatch):
+    # Exact states of a mean-field model (growth, frequency and coupling other than
+    # _mean_field's): the search's refits fit to about 1e-8 of their terms, where the
+    # polish's Newton point from the Gram matrices missed stationarity and ADMM ran its
+    # 20 000 iterations on every refit (84 s, a warning each).  The refined polish
+    # certifies, or stops at the residuals' rounding; no refit warns.
+    from scipy.integrate import solve_ivp
+
+    from robust_sindy.solvers import constrained as solvers
+
+    runs = []
+    original = solvers.solve_constrained_admm
+
+    def counted(*args, **kwargs):
+        out = original(*args, **kwargs)
+        runs.append(out)
+        return out
+
+    monkeypatch.setattr(solvers, "solve_constrained_admm", counted)
+
+    def rhs(_, v):
+        a, b, c = v
+        return [0.2 * a - 2 * b - 0.5 * a * c, 2 * a + 0.2 * b - 0.5 * b * c,
+                -c + 0.5 * (a * a + b * b)]  # fmt: skip
+
+    t = np.linspace(0, 150, 1500)
+    x = solve_ivp(rhs, (0, 150), [0.01, 0, 0], t_eval=t, rtol=1e-10, atol=1e-12).y.T
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = rs.HuberSINDy(constraints="energy_preserving").fit(x, t)
+    names = model.get_feature_names()
+    truth = np.zeros((3, len(names)), dtype=bool)
+    for k, terms in enumerate([("x0", "x1", "x0*x2"), ("x0", "x1", "x1*x2"),
+                               ("x2", "x0^2", "x1^2")]):  # fmt: skip
+        truth[k, [names.index(v) for v in terms]] = True
+    np.testing.assert_array_equal(model.support_, truth)
+    assert runs and all(out.iterations == 0 for out in runs)
+    assert all(
+        out.status == "certified" or out.status.startswith("stopped at the floating-point")
+        for out in runs
+    )
+    assert not [w for w in caught if "constrained problem" in str(w.message)]
+
+
+def test_the_floating_point_floor_excuses_nothing_on_noisy_data():
+    # The floor is the rounding of the residuals: negligible where they carry noise,
+    # large where they are at 1e-13 of terms of order one.
+    from robust_sindy.solvers.constrained import stationarity_floor
+
+    theta, y, delta, lam, con = _random_problem(2, 1000, 5, 2)
+    fast = rs.fit(theta, y, delta=delta, lam=lam, constraints=con)
+    deltas = np.full(2, delta)
+    r = y - theta @ fast.coef
+    assert stationarity_floor(theta, y, fast.coef, deltas, r) < 1e-12
+    tiny = np.full_like(y, 1e-13)
+    assert stationarity_floor(theta, theta @ fast.coef + tiny, fast.coef, deltas, tiny) > 1e-3
+
+
 def test_the_certificate_finds_the_multipliers_on_its_own():
     # Without a solver's multipliers the certificate fits them itself: only the
     # equalities' and the active inequalities' (an inactive row's multiplier would take

@@ -273,14 +273,21 @@ def _multipliers(
     if given and max(np.abs(v).max(initial=0.0) for v in parts(z0)) <= exact:
         return z0[:r_eq], z0[r_eq:]  # the given multipliers already certify: no search
     free = np.concatenate([np.ones(r_eq, dtype=bool), np.asarray(active, dtype=bool)])
-    if on.any() and free.any():
-        # Only the multipliers that may be nonzero enter the fit: an inactive row's would
-        # take a share of it and then be set to zero.
-        ls = np.zeros(r_eq + r_ub)
-        ls[free] = np.linalg.lstsq(c[free][:, on].T, (g - target)[on], rcond=None)[0]
-        ls[r_eq:] = np.maximum(ls[r_eq:], 0.0)
-        if fun(ls)[0] < fun(z0)[0]:
-            z0 = ls
+    if free.any():
+        # Only the multipliers that may be nonzero enter the fits: an inactive row's
+        # would take a share of them and then be set to zero.  Two starts: the support's
+        # conditions unweighted, and every coordinate's on the certificate's scale (the
+        # measure itself where nothing is penalised).
+        fits = [(on, np.ones(x.size)), (np.ones(x.size, dtype=bool), weight)]
+        for rows, w in fits:
+            if not rows.any():
+                continue
+            ls = np.zeros(r_eq + r_ub)
+            a = (c[free][:, rows] * w[rows]).T
+            ls[free] = np.linalg.lstsq(a, ((g - target) * w)[rows], rcond=None)[0]
+            ls[r_eq:] = np.maximum(ls[r_eq:], 0.0)
+            if fun(ls)[0] < fun(z0)[0]:
+                z0 = ls
     res = scipy.optimize.minimize(
         fun, z0, jac=True, method="L-BFGS-B", bounds=bounds,
         options=dict(maxiter=5000, ftol=1e-30, gtol=1e-30),

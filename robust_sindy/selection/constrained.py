@@ -60,8 +60,9 @@ from ..core.constraints import LinearConstraints
 from ..core.losses import huber, huber_psi
 from ..core.scaling import fitted_scale_factor, robust_scale
 from ..core.statistics import correlation_time
-from ..fitting import HUBER_EFFICIENCY_CONSTANT, delta_floor, fit
+from ..fitting import HUBER_EFFICIENCY_CONSTANT, ConvergenceWarning, delta_floor, fit
 from .criteria import MIN_BIC_MARGIN, bic_from_loss, bic_terms, blocked_folds, score_margin
+from .lam_path import pilot_budget
 from .problem import Problem
 from .significance import SIGNIFICANCE_ESTIMATED, sandwich_variance
 
@@ -199,6 +200,8 @@ class ConstrainedRefit:
         the terms the significance rounds left out.
     constraints : LinearConstraints, optional
         The constraints the refit meets (built from the model's ``constraints``).
+    status : str
+        The refit's solver status (why it was not certified, when it was not).
     """
 
     coef: np.ndarray
@@ -216,6 +219,7 @@ class ConstrainedRefit:
     scores: np.ndarray | None = None
     chosen: int = -1
     constraints: LinearConstraints | None = None
+    status: str = ""
 
     def margins(self) -> tuple[np.ndarray, np.ndarray]:
         """Per equation, the summed criterion of the best other candidate minus the
@@ -310,20 +314,28 @@ def restricted(constraints: LinearConstraints, support) -> tuple[np.ndarray, Lin
 
 
 def _refit(
-    kept: Problem, support, delta, constraints: LinearConstraints, method, solver, start=None
+    kept: Problem, support, delta, constraints: LinearConstraints, method, solver, start=None,
+    budget=True,
 ):  # fmt: skip
     """:func:`scaled_fit` on ``support`` (p, n), on the columns some equation uses
     (every other coefficient is zero), from ``start`` (p, n).  Returns
-    ``(coef, result)``."""
+    ``(coef, result)``.  These refits only propose decisions (the search's candidates,
+    the stability blocks): with ``budget``, ADMM gets the iterations of the other such
+    fits (:func:`~robust_sindy.selection.lam_path.pilot_budget`), and no refit warns
+    (the chosen model's certificate is reported by the diagnostics)."""
     p, n = support.shape
     coef = np.zeros((p, n))
     if not support.any():
         return coef, None
     cols, sub = restricted(constraints, support)
     warm = None if start is None else np.where(support[cols], np.asarray(start)[cols], 0.0)
-    fitted, result = scaled_fit(
-        kept.theta[:, cols], kept.y, delta, sub, method=method, solver=solver, warm_start=warm
-    )
+    options = pilot_budget(method) if budget else {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        fitted, result = scaled_fit(
+            kept.theta[:, cols], kept.y, delta, sub, method=method, solver=solver,
+            warm_start=warm, **options,
+        )  # fmt: skip
     coef[cols] = np.where(support[cols], fitted, 0.0)
     return coef, result
 
@@ -332,7 +344,10 @@ def _outcome(coef, support, constraints, result, **extra) -> ConstrainedRefit:
     support = support & ~held_at_zero(constraints, support)
     coef = np.where(support, coef, 0.0)
     converged = True if result is None else bool(result.converged)
-    return ConstrainedRefit(coef, support, constraints.residual(coef), converged, **extra)
+    status = "" if result is None else str(result.messages[0])
+    return ConstrainedRefit(
+        coef, support, constraints.residual(coef), converged, **extra, status=status
+    )
 
 
 def constrained_selection(
@@ -436,6 +451,10 @@ def constrained_selection(
 
         current, pruned = _prune(current, (value, *significance(current)), trial, bar)
     value, refit, result, _ = cache[current.tobytes()]
+    if result is not None and not result.converged:
+        # The chosen model gets the solver's whole budget (the search's refits had the
+        # candidates' one), from where the search left it.
+        refit, result = _refit(kept, current, delta, constraints, method, solver, refit, False)
     candidates = np.array([
         np.where(held_at_zero(constraints, s), 0.0, c) for _, c, _, s in cache.values()
     ])  # fmt: skip
