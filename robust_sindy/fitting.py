@@ -692,20 +692,12 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
         )
     converged = bool(cert.kkt <= tol)
     if not converged:
-        warnings.warn(
-            f"{method} ({solver_name}) did not certify the constrained problem (relative "
-            f"stationarity {cert.stationarity:.1e}, constraint residual "
-            f"{cert.feasibility:.1e}, tol {tol:g}; {out.status}); returning the last "
-            "iterate. Try: "
-            + (
-                "a larger max_iter or another rho (e.g. 0.01 or 100), or method='cvxpy'"
-                if method == "admm"
-                else "the other solver, or check that the constraints can be met"
-            )
-            + ".",
-            ConvergenceWarning,
-            stacklevel=3,
-        )
+        _warn_constrained(
+            f"{method} ({solver_name})", cert, f"tol {tol:g}; {out.status}",
+            "a larger max_iter or another rho (e.g. 0.01 or 100), or method='cvxpy'"
+            if method == "admm"
+            else "the other solver, or check that the constraints can be met",
+        )  # fmt: skip
     column_ok = np.full(n, converged)
     return FitResult(
         coef=out.coef[:, 0].copy() if one_d else out.coef,
@@ -733,6 +725,20 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
         },
         certificate="constrained huber-lasso KKT",
         certificate_kkt=np.maximum(cert.column_kkt, cert.feasibility),
+    )
+
+
+def _warn_constrained(who: str, cert, detail: str, advice: str, depth: int = 0) -> None:
+    """The warning of a constrained problem ``who`` did not certify (``cert``, its
+    certificate; ``detail`` after its figures; ``advice``, what to try), raised for the
+    caller of :func:`fit` (``depth``: calls between :func:`_fit_constrained` and the
+    caller of this function)."""
+    warnings.warn(
+        f"{who} did not certify the constrained problem (relative stationarity "
+        f"{cert.stationarity:.1e}, constraint residual {cert.feasibility:.1e}, {detail}); "
+        f"returning the last iterate. Try: {advice}.",
+        ConvergenceWarning,
+        stacklevel=4 + depth,
     )
 
 
@@ -768,14 +774,10 @@ def _fit_dask_constrained(
     cert = run.certificate
     converged = bool(cert.kkt <= tol)
     if not converged:
-        warnings.warn(
-            f"admm on Dask arrays did not certify the constrained problem (relative "
-            f"stationarity {cert.stationarity:.1e}, constraint residual "
-            f"{cert.feasibility:.1e}, tol {tol:g}); returning the last iterate. Try: a "
-            "larger max_iter, or check that the constraints can be met.",
-            ConvergenceWarning,
-            stacklevel=3,
-        )
+        _warn_constrained(
+            "admm on Dask arrays", cert, f"tol {tol:g}",
+            "a larger max_iter, or check that the constraints can be met", depth=1,
+        )  # fmt: skip
     return _dask_result(
         run,
         theta,

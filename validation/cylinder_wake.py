@@ -42,12 +42,11 @@ TAIL = 50.0
 BLOWUP = 10.0
 
 
-def record(case: str, seed: int):
-    """The record of ``case`` (the published amplitudes, or a contaminated copy)."""
-    data = load_cylinder_wake()
-    x = data.x.copy()
+def contaminate(x, case: str, seed: int):
+    """A copy of the states ``x`` in ``case`` (see the module docstring)."""
+    x = np.array(x, dtype=float)
     if case == "clean":
-        return data.t, x
+        return x
     rng = np.random.default_rng(seed)
     s = x.std(axis=0)
     if case == "glitches":
@@ -57,7 +56,13 @@ def record(case: str, seed: int):
         x += 0.02 * s * rng.normal(size=x.shape)
     else:
         raise ValueError(f"case must be one of {CASES}; got {case!r}")
-    return data.t, x
+    return x
+
+
+def record(case: str, seed: int):
+    """The record of ``case`` (the published amplitudes, or a contaminated copy)."""
+    data = load_cylinder_wake()
+    return data.t, contaminate(data.x, case, seed)
 
 
 def limit_cycle(t, x):

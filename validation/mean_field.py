@@ -27,6 +27,7 @@ import warnings
 from pathlib import Path
 
 import numpy as np
+from cylinder_wake import contaminate
 from scipy.integrate import solve_ivp
 
 import robust_sindy as rs
@@ -50,18 +51,6 @@ def record(params, span: float, samples: int = 3000):
     t = np.linspace(0.0, span / mu, samples)
     sol = solve_ivp(rhs, (0.0, t[-1]), [0.01, 0.0, 0.0], t_eval=t, rtol=1e-10, atol=1e-12)
     return t, sol.y.T
-
-
-def contaminate(x, case: str, seed: int):
-    rng = np.random.default_rng(seed)
-    x = x.copy()
-    s = x.std(axis=0)
-    if case == "glitches":
-        hit = rng.random(x.shape) < 0.03
-        x[hit] += 5.0 * rng.choice([-1.0, 1.0], hit.sum()) * np.broadcast_to(s, x.shape)[hit]
-    elif case == "noise":
-        x += 0.02 * s * rng.normal(size=x.shape)
-    return x
 
 
 def one(params, span, case, seed, variant) -> dict:

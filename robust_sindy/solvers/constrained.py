@@ -550,7 +550,11 @@ def solve_constrained_admm(
                 coef, cert = best
                 info = {"history": history, "rho": rho, "start": name}
                 return ConstrainedOutput(coef, 0, "certified", cert.nu, cert.mu, info, cert)
-            floor = stationarity_floor(theta, y, found[0], delta, found[1].residual)
+            floor = (
+                stationarity_floor(theta, y, found[0], delta, found[1].residual)
+                if settled and found[1].feasibility <= tol
+                else 0.0
+            )
             if settled and found[1].feasibility <= tol and found[1].stationarity <= floor:
                 # The polish settled on its sets and what stationarity misses is the
                 # rounding of the residuals themselves (a nearly exact fit): no method
