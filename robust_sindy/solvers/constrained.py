@@ -290,8 +290,8 @@ def _refined(theta, y, delta, lam_v, x, support, sign, grams, c, d, p, rounds=RE
     the sets fixed, the correction ``dx`` on ``support`` solves the same linear
     conditions with the gradient ``Theta^T psi`` at ``x`` (from the residuals, not from
     the Gram matrices) and the constraints' residual ``d - c x`` as right-hand sides.
-    Returns ``(x, multipliers, psi)`` after ``rounds`` corrections, or None when the
-    system has no solution there."""
+    Returns ``(x, multipliers, residuals, psi)`` after ``rounds`` corrections, or None
+    when the system has no solution there."""
     mult = None
     for _ in range(rounds):
         _, _, psi = _objective(theta, y, delta, lam_v, x)
@@ -301,8 +301,8 @@ def _refined(theta, y, delta, lam_v, x, support, sign, grams, c, d, p, rounds=RE
             return None
         x = x.copy()
         x[support] += dx
-    _, _, psi = _objective(theta, y, delta, lam_v, x)
-    return x, mult, psi
+    _, r, psi = _objective(theta, y, delta, lam_v, x)
+    return x, mult, r, psi
 
 
 def _step(x, support, xs, c_ub, b_ub, active, free, descend):
@@ -399,6 +399,21 @@ def _polish(
     gap = np.concatenate([np.abs(c_eq @ x - b_eq), np.maximum(c_ub @ x - b_ub, 0.0)])
     reached = gap.max(initial=0.0) <= 1e-12 * max(1.0, np.abs(x).max(initial=0.0))
     stalled = 0
+
+    def multipliers(mult, psi, active):
+        """Every row's multiplier from a solve's (``mult``: the kept equalities',
+        then the ``active`` inequalities'), the pinned rows' read off stationarity,
+        and what stationarity leaves (``hh``, zero at the pinned coefficients)."""
+        nu = np.zeros(c_eq.shape[0])
+        nu[rows] = mult[:r_eq]
+        mu = np.zeros(c_ub.shape[0])
+        mu[active] = mult[r_eq:]
+        hh = _theta_t(theta, psi) - c_eq.T @ nu - c_ub.T @ mu
+        at = pinned_at[first_pin]
+        nu[pins[first_pin]] = hh[at] / c_eq[pins[first_pin], at]
+        hh[at] = 0.0
+        return nu, mu, hh
+
     for round_ in range(rounds):
         descend = bool(round_) or reached
         outside = pulled != 0
@@ -443,19 +458,7 @@ def _polish(
         stalled = stalled + 1 if new_obj >= obj - 1e-13 * abs(obj) else 0
         x, obj, r, psi = trial, new_obj, new_r, new_psi
         entering[:] = 0.0
-
-        def multipliers(mult, psi, active=active):
-            nu = np.zeros(c_eq.shape[0])
-            nu[rows] = mult[:r_eq]
-            mu = np.zeros(c_ub.shape[0])
-            mu[active] = mult[r_eq:]
-            hh = _theta_t(theta, psi) - c_eq.T @ nu - c_ub.T @ mu
-            at = pinned_at[first_pin]
-            nu[pins[first_pin]] = hh[at] / c_eq[pins[first_pin], at]
-            hh[at] = 0.0
-            return nu, mu, hh
-
-        nu, mu, hh = multipliers(mult, psi)
+        nu, mu, hh = multipliers(mult, psi, active)
         scale = np.maximum(lam_v, norms * np.repeat(column_norms(psi), p))
         excess = np.where((x == 0) & ~blocked & ~free & ~pinned, (np.abs(hh) - lam_v) / scale, 0.0)
         enter = np.zeros_like(excess, dtype=bool)
@@ -473,9 +476,9 @@ def _polish(
             # against the gradient from the residuals themselves recover the accuracy.
             refined = _refined(theta, y, delta, lam_v, x, support, sign, system[0], c, d, p)
             if refined is not None:
-                x_r, mult_r, psi_r = refined
-                if np.array_equal(_sides(y - _theta_x(theta, x_r, n), delta), pulled):
-                    nu_r, mu_r, _ = multipliers(mult_r, psi_r)
+                x_r, mult_r, r_r, psi_r = refined
+                if np.array_equal(_sides(r_r, delta), pulled):
+                    nu_r, mu_r, _ = multipliers(mult_r, psi_r, active)
                     best = (x_r, nu_r, np.maximum(mu_r, 0.0))
             return (*best, True)
         if stalled >= STALL_ROUNDS:
@@ -550,23 +553,20 @@ def solve_constrained_admm(
                 coef, cert = best
                 info = {"history": history, "rho": rho, "start": name}
                 return ConstrainedOutput(coef, 0, "certified", cert.nu, cert.mu, info, cert)
-            floor = (
-                stationarity_floor(theta, y, found[0], delta, found[1].residual)
-                if settled and found[1].feasibility <= tol
-                else 0.0
-            )
-            if settled and found[1].feasibility <= tol and found[1].stationarity <= floor:
-                # The polish settled on its sets and what stationarity misses is the
-                # rounding of the residuals themselves (a nearly exact fit): no method
+            coef, cert = found
+            if settled and cert.feasibility <= tol:
+                # The polish settled on its sets: where what stationarity misses is the
+                # rounding of the residuals themselves (a nearly exact fit), no method
                 # resolves it further, and ADMM would only spend its iterations.
-                coef, cert = found
-                info = {"history": history, "rho": rho, "start": name, "floor": floor}
-                status = (
-                    f"stopped at the floating-point floor: relative stationarity "
-                    f"{cert.stationarity:.1e} is within the rounding of the residuals "
-                    f"({floor:.1e})"
-                )
-                return ConstrainedOutput(coef, 0, status, cert.nu, cert.mu, info, cert)
+                floor = stationarity_floor(theta, y, coef, delta, cert.residual)
+                if cert.stationarity <= floor:
+                    info = {"history": history, "rho": rho, "start": name, "floor": floor}
+                    status = (
+                        f"stopped at the floating-point floor: relative stationarity "
+                        f"{cert.stationarity:.1e} is within the rounding of the residuals "
+                        f"({floor:.1e})"
+                    )
+                    return ConstrainedOutput(coef, 0, status, cert.nu, cert.mu, info, cert)
     gram = ts.T @ ts  # the ADMM's, formed only when a start did not certify
     N = p * n
     x, z, u_x = np.zeros(N), np.zeros(N), np.zeros(N)
