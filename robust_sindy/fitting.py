@@ -9,7 +9,7 @@ from numbers import Real
 
 import numpy as np
 
-from .core.certificates import certify
+from .core.certificates import certify, rounding_floor
 from .core.scaling import fitted_scale_factor, robust_scale
 from .core.validation import (
     as_float_array,
@@ -31,6 +31,7 @@ __all__ = [
     "auto_delta",
     "check_huber_method",
     "fast_path_options",
+    "fast_path_verdict",
     "fit",
 ]
 
@@ -57,7 +58,10 @@ class FitResult:
     objective : ndarray, shape (n,)
         ``P_k(coef)`` per target column (sum of Huber losses plus ``lam ||xi||_1``).
     converged : bool
-        True only if every column was certified optimal (see ``column_converged``).
+        True only if every column was certified optimal (see ``column_converged``): its
+        relative KKT violation within the tolerance (or, for the fast path, within what
+        the rounding of its residuals alone can leave, ``info["floor"]``: a nearly exact
+        fit that no method resolves further).
     column_converged : ndarray of bool, shape (n,)
     iterations : ndarray of int, shape (n,)
         Solver iterations per column (ADMM iterations, interior-point iterations,
@@ -289,7 +293,9 @@ def fit(
     if method == "cvxpy":  # the certificate decides, not the solver's status
         column_ok = own_kkt <= tol
     else:
-        column_ok = out.converged & ((own_kkt <= tol) | (cert.rel_gap <= gap_tol))
+        column_ok = fast_path_verdict(
+            theta, y, out, own_kkt, cert, delta_k, tol, gap_tol, floor=method == "admm"
+        )
     if not column_ok.all():
         bad = np.flatnonzero(~column_ok).tolist()
         advice = _advice(method, solver_name, out, bad, opts, tol, delta_k, y, loss)
@@ -323,6 +329,27 @@ def fit(
         certificate=certificate,
         certificate_kkt=own_kkt,
     )
+
+
+def fast_path_verdict(theta, y, out, kkt, cert, delta, tol, gap_tol, floor=True) -> np.ndarray:
+    """Which columns of the solver's ``out`` its certificate ``cert`` accepts: the solver
+    finished and the relative KKT violation ``kkt`` is within ``tol`` or the relative
+    duality gap within ``gap_tol``; or (``floor``) the violation is within what the
+    rounding of the residuals alone can leave
+    (:func:`robust_sindy.core.certificates.rounding_floor`, written to
+    ``out.info["floor"]`` for the columns it was computed for): stationary as far as
+    floating point can tell, which in a convex problem is optimal as far as it can tell
+    (a nearly exact fit whose terms cancel, where no method does better)."""
+    ok = out.converged & ((kkt <= tol) | (cert.rel_gap <= gap_tol))
+    if floor and not ok.all():
+        bad = np.flatnonzero(~ok)
+        found = np.full(ok.shape, np.nan)
+        found[bad] = rounding_floor(
+            theta, y[:, bad], out.coef[:, bad], np.asarray(delta)[bad], cert.residual[:, bad]
+        )
+        ok[bad] = (found[bad] > 0) & (kkt[bad] <= found[bad])  # a floor of 0 forgives nothing
+        out.info["floor"] = np.where(np.isnan(found), out.info.get("floor", np.nan), found)
+    return ok
 
 
 def _delta_lam(theta, y, one_d, method, delta, lam, loss, solver):
@@ -691,6 +718,11 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
             theta, y, out.coef, delta_k, lam_full, constraints, nu=out.nu, mu=out.mu
         )
     converged = bool(cert.kkt <= tol)
+    if not converged and method == "admm" and cert.feasibility <= tol:
+        # Stationary within what the rounding of the residuals can leave (a nearly exact
+        # fit): certified to the floating-point floor, as the unconstrained fast path is.
+        floor = constrained.stationarity_floor(theta, y, out.coef, delta_k, cert.residual)
+        converged = bool(cert.stationarity <= floor)
     if not converged:
         _warn_constrained(
             f"{method} ({solver_name})", cert, f"tol {tol:g}; {out.status}",

@@ -86,6 +86,26 @@ def test_rounding_never_certifies_the_least_squares_point_of_a_tiny_delta(scale)
     assert kkt[0] > 1e-2
 
 
+@pytest.mark.parametrize("seed", range(4))
+def test_the_rounding_floor_forgives_rounding_only(seed):
+    # The floor is what the rounding of the residuals can leave in the stationarity:
+    # negligible where they carry noise, large where they are 1e-13 of terms of order
+    # one, and nothing where that rounding reaches delta (a least-absolute-deviation
+    # fit, whose stationarity floating point cannot resolve at all).
+    from robust_sindy.core.certificates import rounding_floor
+
+    theta, y = random_problem(seed)
+    res = rs.fit(theta, y, delta=1.0, lam=1.0)
+    n = y.shape[1]
+    r = y - theta @ res.coef
+    assert rounding_floor(theta, y, res.coef, np.ones(n), r).max() < 1e-12
+    tiny = 1e-13 * np.abs(y).max()
+    exact = theta @ res.coef + tiny
+    assert rounding_floor(theta, exact, res.coef, np.ones(n), np.full_like(y, tiny)).min() > 1e-4
+    lad = rounding_floor(theta, y, res.coef, np.full(n, 1e-17 * np.abs(y).max()), r)
+    assert np.all(lad == 0.0)
+
+
 @pytest.mark.parametrize("scale", [1e-150, 1e-50, 1e50, 1e150])
 def test_fast_path_is_certified_and_invariant_at_extreme_library_scales(scale):
     theta, y = _outlier_problem()

@@ -13,6 +13,8 @@ import robust_sindy as rs
 from robust_sindy import constraints as rc
 from robust_sindy.core.constraints import LinearConstraints, constrained_certificate
 
+from .conftest import mean_field_record, mean_field_support
+
 
 def _names(n, degree=2):
     return rs.PolynomialLibrary(degree=degree).fit(np.zeros((1, n))).get_feature_names()
@@ -268,9 +270,7 @@ def test_an_exact_record_under_constraints_needs_no_admm(monkeypatch):
     # _mean_field's): the search's refits fit to about 1e-8 of their terms, where the
     # polish's Newton point from the Gram matrices missed stationarity and ADMM ran its
     # 20 000 iterations on every refit (84 s, a warning each).  The refined polish
-    # certifies, or stops at the residuals' rounding; no refit warns.
-    from scipy.integrate import solve_ivp
-
+    # certifies, or is certified to the residuals' rounding; no refit warns.
     from robust_sindy.solvers import constrained as solvers
 
     runs = []
@@ -283,25 +283,14 @@ def test_an_exact_record_under_constraints_needs_no_admm(monkeypatch):
 
     monkeypatch.setattr(solvers, "solve_constrained_admm", counted)
 
-    def rhs(_, v):
-        a, b, c = v
-        return [0.2 * a - 2 * b - 0.5 * a * c, 2 * a + 0.2 * b - 0.5 * b * c,
-                -c + 0.5 * (a * a + b * b)]  # fmt: skip
-
-    t = np.linspace(0, 150, 1500)
-    x = solve_ivp(rhs, (0, 150), [0.01, 0, 0], t_eval=t, rtol=1e-10, atol=1e-12).y.T
+    t, x = mean_field_record(150, 1500)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         model = rs.HuberSINDy(constraints="energy_preserving").fit(x, t)
-    names = model.get_feature_names()
-    truth = np.zeros((3, len(names)), dtype=bool)
-    for k, terms in enumerate([("x0", "x1", "x0*x2"), ("x0", "x1", "x1*x2"),
-                               ("x2", "x0^2", "x1^2")]):  # fmt: skip
-        truth[k, [names.index(v) for v in terms]] = True
-    np.testing.assert_array_equal(model.support_, truth)
+    np.testing.assert_array_equal(model.support_, mean_field_support(model))
     assert runs and all(out.iterations == 0 for out in runs)
     assert all(
-        out.status == "certified" or out.status.startswith("stopped at the floating-point")
+        out.status == "certified" or out.status.startswith("certified to the floating-point")
         for out in runs
     )
     assert not [w for w in caught if "constrained problem" in str(w.message)]

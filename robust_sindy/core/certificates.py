@@ -173,6 +173,34 @@ def rounding_free(r: np.ndarray, y: np.ndarray, theta: np.ndarray, xi: np.ndarra
     return r
 
 
+def rounding_floor(theta, y, xi, delta, residual) -> np.ndarray:
+    """The relative KKT violation per column (n,) that the rounding of the residuals
+    alone can leave at ``xi`` (p, n): each inlier's ``r_i = y_i - Theta_i xi`` is
+    computed with an error of up to about ``(p + 1) eps (|y_i| + |Theta_i| |xi|)`` (an
+    outlier's ``psi`` is exactly ``+-delta``), which enters ``Theta_j^T psi`` at most as
+    ``||Theta_j||`` times its norm, and the violation is relative to
+    ``||Theta_j|| ||psi||`` (or more): the norm of those errors over ``||psi||``.
+
+    Where the residuals carry noise this is far below any tolerance (1e-12 and less);
+    it is large only where they are at the level of that rounding, e.g. a nearly exact
+    fit whose terms cancel.  ``|Theta| |xi|`` is not capped (unlike
+    :func:`rounding_free`): the floor is a bound on the arithmetic, not a verdict.  The
+    bound holds only while the rounding cannot move a sample across ``delta``: where
+    some residual's rounding reaches ``delta`` (a threshold below the resolution of the
+    residuals, a least-absolute-deviation fit) the floor is 0, nothing forgiven.
+    """
+    delta = np.asarray(delta, dtype=float)[None, :]
+    inlier = np.abs(residual) <= delta
+    size = np.abs(y) + _abs_product(theta, np.abs(xi))
+    error = (xi.shape[0] + 1) * np.finfo(float).eps * size
+    with np.errstate(divide="ignore", invalid="ignore"):
+        ratio = column_norms(np.where(inlier, error, 0.0)) / column_norms(
+            huber_psi(residual, delta)
+        )
+    resolved = np.all(error < delta, axis=0)
+    return np.where(resolved, np.nan_to_num(ratio, nan=0.0, posinf=0.0), 0.0)
+
+
 def certify(
     theta: np.ndarray,
     y: np.ndarray,

@@ -12,7 +12,14 @@ from tqdm import tqdm
 from ..core.certificates import certify
 from ..core.losses import huber_psi
 from ..core.validation import as_float_array, check_int, check_positive, check_problem, loss_delta
-from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fast_path_options, fit
+from ..fitting import (
+    ConvergenceWarning,
+    auto_delta,
+    check_huber_method,
+    fast_path_options,
+    fast_path_verdict,
+    fit,
+)
 from ..solvers import driver, problem
 
 __all__ = ["PATH_MAX_ITER", "Path", "lambda_max", "path"]
@@ -257,7 +264,10 @@ def path(
                     col_norms,
                 )  # fmt: skip
                 coef[i][:, cols], obj[i, cols], kkt[i, cols] = out.coef, cert.objective, cert.kkt
-                conv[i, cols] = accepted(out.converged, cert.kkt, cert.rel_gap)
+                conv[i, cols] = fast_path_verdict(
+                    theta, y[:, cols], out, cert.kkt, cert, delta_k[cols], opts["tol"],
+                    opts["gap_tol"],
+                )  # fmt: skip
                 walked[i, cols] = True
                 if warm_start:
                     previous, psi[:, cols] = coef[i], cert.psi

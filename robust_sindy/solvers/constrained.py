@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from ..core.certificates import column_norms
+from ..core.certificates import column_norms, rounding_floor
 from ..core.constraints import LinearConstraints, constrained_certificate
 from ..core.losses import huber, huber_psi, soft_threshold
 from . import driver
@@ -271,18 +271,9 @@ def _newton_point(system, lam_v, c, d, support, sign, p, at=None, prox=0.0):
 
 def stationarity_floor(theta, y, coef, delta, residual) -> float:
     """The relative stationarity that the rounding of the residuals alone can leave at
-    ``coef`` (p, n): each inlier's ``r_i = y_i - Theta_i xi`` is computed with an error
-    of about ``(p + 1) eps (|y_i| + |Theta_i| |xi|)`` (an outlier's ``psi`` is exactly
-    ``+-delta``), which enters ``Theta_j^T psi`` at most as ``||Theta_j||`` times its
-    norm: the largest over the equations of that norm over ``||psi_k||``."""
-    p = theta.shape[1]
-    inlier = np.abs(residual) <= np.asarray(delta, dtype=float)[None, :]
-    size = np.abs(y) + np.abs(theta) @ np.abs(coef)
-    error = (p + 1) * np.finfo(float).eps * np.where(inlier, size, 0.0)
-    psi = huber_psi(residual, np.asarray(delta, dtype=float)[None, :])
-    with np.errstate(divide="ignore", invalid="ignore"):
-        ratio = column_norms(error) / column_norms(psi)
-    return float(np.nan_to_num(ratio, nan=0.0, posinf=0.0).max(initial=0.0))
+    ``coef`` (p, n): the largest over the equations of
+    :func:`robust_sindy.core.certificates.rounding_floor`."""
+    return float(rounding_floor(theta, y, coef, delta, residual).max(initial=0.0))
 
 
 def _refined(theta, y, delta, lam_v, x, support, sign, grams, c, d, p, rounds=REFINE_ROUNDS):
@@ -562,7 +553,7 @@ def solve_constrained_admm(
                 if cert.stationarity <= floor:
                     info = {"history": history, "rho": rho, "start": name, "floor": floor}
                     status = (
-                        f"stopped at the floating-point floor: relative stationarity "
+                        f"certified to the floating-point floor: relative stationarity "
                         f"{cert.stationarity:.1e} is within the rounding of the residuals "
                         f"({floor:.1e})"
                     )

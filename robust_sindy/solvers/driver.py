@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.certificates import certify, rounding_floor
 from ..core.losses import huber_psi
 from . import _kernel
 from .admm import solve_admm
@@ -92,7 +93,13 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
     ``DEFAULT_OPTIONS``).  ``polish=False`` (as in the paper's settings) means no
     Newton at all: plain ADMM.  Returns a :class:`SolverOutput` in the caller's units;
     ``info`` has ``newton_steps`` per column, ``passes`` (over ``Theta`` by the Newton
-    run) and ``fallback`` (columns handed to the ADMM).
+    run), ``fallback`` (columns handed to the ADMM), ``stalled`` (columns where the
+    Newton steps stopped at the floating-point floor) and ``floor``: for an uncertified
+    column, the relative KKT violation that the rounding of its residuals alone can leave
+    (:func:`robust_sindy.core.certificates.rounding_floor`; NaN for the columns Newton
+    certified).  An uncertified column whose violation is within its floor is returned
+    as converged (certified to the floating-point floor, its message says so) without
+    the ADMM.
     """
     opts = {**DEFAULT_OPTIONS, **options}
     if not opts["polish"]:
@@ -100,6 +107,7 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
     m, p = theta.shape
     n = y.shape[1]
     lam = np.broadcast_to(lam, (p, n)).astype(float)
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (n,))
     equilibrate, kappa = opts["equilibrate"], opts["kappa"]
     if prepared is None or prepared.equilibrate != equilibrate or prepared.kappa != kappa:
         prepared = prepare(theta, equilibrate=equilibrate, kappa=kappa)
@@ -198,7 +206,27 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
         )
     stalled |= unresolvable
     # A stall is the floor of the Gram-based steps, not necessarily of the problem: the
-    # ADMM (whose finish restarts from its own iterates) still gets its chance.
+    # ADMM (whose finish restarts from its own iterates) still gets its chance, unless
+    # the violation is within what the rounding of the residuals alone can leave (a
+    # nearly exact fit whose terms cancel; checked for every uncertified column, stalled
+    # or out of steps): that is the floor of the problem, which no method resolves
+    # further (on such refits the ADMM spent its 20 000 iterations and ended no
+    # closer).  The column is then certified to that floor.
+    floor = np.full(n, np.nan)
+    stuck = np.flatnonzero(~converged & ~unresolvable)
+    if stuck.size:
+        ys_, ds_ = y[:, stuck], delta[stuck]
+        cert = certify(theta, ys_, coef[:, stuck], ds_, lam[:, stuck])
+        floor[stuck] = rounding_floor(theta, ys_, coef[:, stuck], ds_, cert.residual)
+        passes += 2
+        for i, k in enumerate(stuck):
+            if cert.kkt[i] <= floor[k]:
+                converged[k] = True
+                messages[k] = (
+                    f"certified to the floating-point floor after {steps[k]} Newton steps: "
+                    f"relative KKT {cert.kkt[i]:.1e} is within what the rounding of the "
+                    f"residuals can leave ({floor[k]:.1e})"
+                )
     fallback = ~converged & ~unresolvable
     if fallback.any():
         j = np.flatnonzero(fallback)
@@ -227,6 +255,7 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
             "passes": passes,
             "fallback": fallback,
             "stalled": stalled,
+            "floor": floor,
             "rho": rho,
         },
     )

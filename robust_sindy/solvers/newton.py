@@ -67,7 +67,7 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from ..core.certificates import column_norms, kkt_from_gradient, rounding_free
+from ..core.certificates import column_norms, kkt_from_gradient, rounding_floor, rounding_free
 from ..core.losses import huber_psi, soft_threshold
 from ..core.threads import map_threads
 from .problem import (
@@ -636,8 +636,10 @@ def newton(
     ``tol / 10`` (a margin for the check in the caller's units), after two steps that
     did not halve the violation of a point already below ``tol``, when no step makes
     progress, or when it has stalled: its KKT violation has not halved in 5 steps while
-    its objective no longer changes (1e-12 relative), which is where rounding in an
-    ill-conditioned library ends what any method can certify.  The returned point is
+    its objective no longer changes (1e-12 relative) or its violation is within what the
+    rounding of the residuals can leave
+    (:func:`~robust_sindy.core.certificates.rounding_floor`), which is where rounding
+    ends what any method can certify.  The returned point is
     the best certified one (KKT <= ``tol``) or, for uncertified columns, the last.
     With ``patience``, a column also stops once its violation has not halved in that
     many steps (a bounded attempt, as the compiled iteration makes).
@@ -681,9 +683,17 @@ def newton(
             obj[halved],
             step,
         )
-        stuck = (step - ref_step[act] >= _STALL_STEPS) & (
-            ref_obj[act] - obj <= _STALL_OBJ * np.abs(obj)
-        )
+        waited = step - ref_step[act]
+        stuck = (waited >= _STALL_STEPS) & (ref_obj[act] - obj <= _STALL_OBJ * np.abs(obj))
+        # A nearly exact fit's objective is itself rounding (relative to the terms'
+        # size, not to the tiny residuals), so it can keep changing at 1e-9 while the
+        # violation sits within what the rounding of the residuals can leave: that is
+        # the floor too (checked every _STALL_STEPS steps without halving).
+        check = ~stuck & (waited >= _STALL_STEPS) & (waited % _STALL_STEPS == 0)
+        if check.any():
+            at = np.flatnonzero(check)
+            floor = rounding_floor(A, ya[:, at], xa[:, at], da[at], ra[:, at])
+            stuck[at[kkt[at] <= floor]] = True
         stalled[act] = stuck & ~np.isfinite(best_kkt[act])
         settled = np.isfinite(best_kkt[act]) & (step - ref_step[act] >= _CERTIFIED_STEPS)
         go = (kkt > 0.1 * tol) & ~stuck & ~settled
