@@ -9,7 +9,7 @@ from numbers import Real
 
 import numpy as np
 
-from .core.certificates import certify, rounding_floor
+from .core.certificates import certify, rounding_floor, within_floor
 from .core.scaling import fitted_scale_factor, robust_scale
 from .core.validation import (
     as_float_array,
@@ -347,7 +347,7 @@ def fast_path_verdict(theta, y, out, kkt, cert, delta, tol, gap_tol, floor=True)
         found[bad] = rounding_floor(
             theta, y[:, bad], out.coef[:, bad], np.asarray(delta)[bad], cert.residual[:, bad]
         )
-        ok[bad] = (found[bad] > 0) & (kkt[bad] <= found[bad])  # a floor of 0 forgives nothing
+        ok[bad] = within_floor(kkt[bad], found[bad])
         out.info["floor"] = np.where(np.isnan(found), out.info.get("floor", np.nan), found)
     return ok
 
@@ -722,7 +722,7 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
         # Stationary within what the rounding of the residuals can leave (a nearly exact
         # fit): certified to the floating-point floor, as the unconstrained fast path is.
         floor = constrained.stationarity_floor(theta, y, out.coef, delta_k, cert.residual)
-        converged = bool(cert.stationarity <= floor)
+        converged = bool(within_floor(cert.stationarity, floor))
     if not converged:
         _warn_constrained(
             f"{method} ({solver_name})", cert, f"tol {tol:g}; {out.status}",

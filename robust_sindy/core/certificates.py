@@ -201,6 +201,13 @@ def rounding_floor(theta, y, xi, delta, residual) -> np.ndarray:
     return np.where(resolved, np.nan_to_num(ratio, nan=0.0, posinf=0.0), 0.0)
 
 
+def within_floor(kkt, floor) -> np.ndarray:
+    """Whether a relative KKT violation is within its :func:`rounding_floor` (a floor
+    of 0, or NaN where none was computed, forgives nothing)."""
+    floor = np.nan_to_num(np.asarray(floor, dtype=float), nan=0.0)
+    return (floor > 0) & (np.asarray(kkt) <= floor)
+
+
 def certify(
     theta: np.ndarray,
     y: np.ndarray,

@@ -36,7 +36,7 @@ from __future__ import annotations
 import numpy as np
 import scipy.linalg
 
-from ..core.certificates import column_norms, rounding_floor
+from ..core.certificates import column_norms, rounding_floor, within_floor
 from ..core.constraints import LinearConstraints, constrained_certificate
 from ..core.losses import huber, huber_psi, soft_threshold
 from . import driver
@@ -550,7 +550,7 @@ def solve_constrained_admm(
                 # rounding of the residuals themselves (a nearly exact fit), no method
                 # resolves it further, and ADMM would only spend its iterations.
                 floor = stationarity_floor(theta, y, coef, delta, cert.residual)
-                if cert.stationarity <= floor:
+                if within_floor(cert.stationarity, floor):
                     info = {"history": history, "rho": rho, "start": name, "floor": floor}
                     status = (
                         f"certified to the floating-point floor: relative stationarity "

@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.certificates import certify, rounding_floor
+from ..core.certificates import certify, rounding_floor, within_floor
 from ..core.losses import huber_psi
 from . import _kernel
 from .admm import solve_admm
@@ -220,7 +220,7 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
         floor[stuck] = rounding_floor(theta, ys_, coef[:, stuck], ds_, cert.residual)
         passes += 2
         for i, k in enumerate(stuck):
-            if cert.kkt[i] <= floor[k]:
+            if within_floor(cert.kkt[i], floor[k]):
                 converged[k] = True
                 messages[k] = (
                     f"certified to the floating-point floor after {steps[k]} Newton steps: "

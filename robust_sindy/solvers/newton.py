@@ -67,7 +67,13 @@ from dataclasses import dataclass
 import numpy as np
 import scipy.linalg
 
-from ..core.certificates import column_norms, kkt_from_gradient, rounding_floor, rounding_free
+from ..core.certificates import (
+    column_norms,
+    kkt_from_gradient,
+    rounding_floor,
+    rounding_free,
+    within_floor,
+)
 from ..core.losses import huber_psi, soft_threshold
 from ..core.threads import map_threads
 from .problem import (
@@ -693,7 +699,7 @@ def newton(
         if check.any():
             at = np.flatnonzero(check)
             floor = rounding_floor(A, ya[:, at], xa[:, at], da[at], ra[:, at])
-            stuck[at[kkt[at] <= floor]] = True
+            stuck[at[within_floor(kkt[at], floor)]] = True
         stalled[act] = stuck & ~np.isfinite(best_kkt[act])
         settled = np.isfinite(best_kkt[act]) & (step - ref_step[act] >= _CERTIFIED_STEPS)
         go = (kkt > 0.1 * tol) & ~stuck & ~settled
