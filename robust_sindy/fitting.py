@@ -336,19 +336,21 @@ def fast_path_verdict(theta, y, out, kkt, cert, delta, tol, gap_tol, floor=True)
     finished and the relative KKT violation ``kkt`` is within ``tol`` or the relative
     duality gap within ``gap_tol``; or (``floor``) the violation is within what the
     rounding of the residuals alone can leave
-    (:func:`robust_sindy.core.certificates.rounding_floor`, written to
-    ``out.info["floor"]`` for the columns it was computed for): stationary as far as
-    floating point can tell, which in a convex problem is optimal as far as it can tell
-    (a nearly exact fit whose terms cancel, where no method does better)."""
+    (:func:`robust_sindy.core.certificates.rounding_floor`; the solver's own
+    ``out.info["floor"]`` where it computed one at the same point, the others computed
+    here and written there): stationary as far as floating point can tell, which in a
+    convex problem is optimal as far as it can tell (a nearly exact fit whose terms
+    cancel, where no method does better)."""
     ok = out.converged & ((kkt <= tol) | (cert.rel_gap <= gap_tol))
     if floor and not ok.all():
-        bad = np.flatnonzero(~ok)
-        found = np.full(ok.shape, np.nan)
-        found[bad] = rounding_floor(
-            theta, y[:, bad], out.coef[:, bad], np.asarray(delta)[bad], cert.residual[:, bad]
-        )
-        ok[bad] = within_floor(kkt[bad], found[bad])
-        out.info["floor"] = np.where(np.isnan(found), out.info.get("floor", np.nan), found)
+        found = np.array(out.info.get("floor", np.full(ok.shape, np.nan)), dtype=float)
+        new = np.flatnonzero(~ok & np.isnan(found))
+        if new.size:
+            found[new] = rounding_floor(
+                theta, y[:, new], out.coef[:, new], np.asarray(delta)[new], cert.residual[:, new]
+            )
+        ok |= within_floor(kkt, found)
+        out.info["floor"] = found
     return ok
 
 
@@ -721,7 +723,9 @@ def _fit_constrained(theta, xdot, method, delta, lam, loss, solver, constraints,
     if not converged and method == "admm" and cert.feasibility <= tol:
         # Stationary within what the rounding of the residuals can leave (a nearly exact
         # fit): certified to the floating-point floor, as the unconstrained fast path is.
-        floor = constrained.stationarity_floor(theta, y, out.coef, delta_k, cert.residual)
+        floor = out.info.get("floor")  # the polish's own, at the same point
+        if floor is None:
+            floor = constrained.stationarity_floor(theta, y, out.coef, delta_k, cert.residual)
         converged = bool(within_floor(cert.stationarity, floor))
     if not converged:
         _warn_constrained(

@@ -96,10 +96,10 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
     run), ``fallback`` (columns handed to the ADMM), ``stalled`` (columns where the
     Newton steps stopped at the floating-point floor) and ``floor``: for an uncertified
     column, the relative KKT violation that the rounding of its residuals alone can leave
-    (:func:`robust_sindy.core.certificates.rounding_floor`; NaN for the columns Newton
-    certified).  An uncertified column whose violation is within its floor is returned
-    as converged (certified to the floating-point floor, its message says so) without
-    the ADMM.
+    (:func:`robust_sindy.core.certificates.rounding_floor`, at the returned point; NaN
+    for the columns Newton certified and those the ADMM then solved).  An uncertified
+    column whose violation is within its floor is returned as converged (certified to
+    the floating-point floor, its message says so) without the ADMM.
     """
     opts = {**DEFAULT_OPTIONS, **options}
     if not opts["polish"]:
@@ -242,6 +242,7 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
         )
         coef[:, j], converged[j], iterations[j] = out.coef, out.converged, out.iterations
         rho[j] = out.info["rho"]
+        floor[j] = np.nan  # the ADMM moved these columns: no floor at its point
         steps[j] += out.info["newton_steps"]
         for i, k in enumerate(j):
             messages[k] = f"Newton uncertified after {steps[k]} steps; ADMM: {out.messages[i]}"
