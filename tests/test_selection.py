@@ -340,6 +340,36 @@ def test_screen_flags_the_contaminated_samples():
     assert s.start.all() and not s.restarted
 
 
+def test_a_cycle_of_flags_refits_each_set_of_samples_once():
+    """The row screen's pilot is a function of the samples kept: a round that returns to
+    samples an earlier round kept reuses that pilot, and the cycle ends in its union."""
+    from robust_sindy.selection.rows import _Pilots
+
+    m = 200
+    base = np.linspace(-1.0, 1.0, m)[:, None]  # nowhere near the cutoff
+
+    calls = []
+
+    class Scripted(_Pilots):
+        def pilot(self, keep, start=None):
+            # Sample 0 is always gross; sample 1 only while it is in the fit.
+            calls.append(np.flatnonzero(~keep).tolist())
+            r = base.copy()
+            r[0] = 100.0
+            if keep[1]:
+                r[1] = 100.0
+            return np.zeros((2, 1)), r, np.ones(1)
+
+    theta, y = np.ones((m, 2)), np.zeros((m, 1))
+    first = np.ones(m, dtype=bool)
+    pilots = Scripted(theta, y, first, None, 25, None, 3.5, 20, "admm")
+    outcome = pilots.iterate(first)
+    # {} flags {0, 1}; {0, 1} flags {0}; {0} flags {0, 1} again: the cycle's union
+    # {0, 1}, whose pilot is the second round's.
+    assert calls == [[], [0, 1], [0]]
+    assert outcome.converged and np.flatnonzero(outcome.flags).tolist() == [0, 1]
+
+
 def test_screen_finds_bad_leverage_rows_in_the_drone():
     drone = Drone()
     data = drone.generate()

@@ -345,17 +345,23 @@ class _Pilots:
         oscillation).  The pilot is a function of the samples kept, so flags that repeat
         an earlier round's cycle for ever; they become the union of the cycle at once,
         and flags that leave out exactly the samples ``keep`` left out are stable at
-        once (the next pilot would be the same fit).  ``start``, the ``(delta, coef)``
-        of a pilot on nearly the same problem, starts the first round's choice of
-        ``delta``; each later round starts from the round before."""
+        once (the next pilot would be the same fit).  A round on samples an earlier
+        round kept reuses that round's pilot (a cycle returns to them), so the pilot
+        is one fit per set of samples.  ``start``, the ``(delta, coef)`` of a pilot on
+        nearly the same problem, starts the first round's choice of ``delta``; each
+        later round starts from the round before."""
         p = self.theta.shape[1]
         flags, converged, done, scale = ~keep, False, 0, np.zeros(self.y.shape[1])
         history: list[np.ndarray] = []
+        pilots: dict[bytes, tuple] = {}  # the pilot of each set of samples kept
         monotone = False
         for done in range(1, self.rounds + 1):
             # Delta's iteration starts from the last pilot's (the first round's from
             # ``start`` when given, else from least squares).
-            coef, r, delta = self.pilot(keep, start)
+            key = np.packbits(keep).tobytes()
+            if key not in pilots:
+                pilots[key] = self.pilot(keep, start)
+            coef, r, delta = pilots[key]
             start = (delta, coef)
             scale = np.maximum(np.atleast_1d(robust_scale(r[keep])), SCALE_FLOOR * self.rms)
             new = self.scaled(r, scale, coef) > 1

@@ -403,7 +403,9 @@ def _solve_blocks(Mm: np.ndarray, b: np.ndarray, valid: np.ndarray):
     beyond each block, and the columns where an eigenvalue was cut."""
     k, s = valid.shape
     sizes = valid.sum(axis=1)
-    Mm = np.where(valid[:, :, None] & valid[:, None, :], Mm, 0.0)
+    # Each block is its leading sizes[j] x sizes[j] entries: the Cholesky solves read
+    # only those, and only the blocks left to the eigen-solver are masked (a masked copy
+    # of every block is k s^2 entries, hundreds of megabytes with many states).
     diag = np.einsum("kii->ki", Mm)
     top = np.max(np.where(valid, diag, 0.0), axis=1)
     top = np.where(top > 0, top, 1.0)
@@ -425,7 +427,8 @@ def _solve_blocks(Mm: np.ndarray, b: np.ndarray, valid: np.ndarray):
         # eigenvalue cut refers to the block's own scale) and normalised to a unit
         # diagonal maximum: the eigen-solver sees no tiny or huge entries (reweighted
         # steps with delta far below the residuals have weights ~1e-300).
-        Mr, vr, tr = Mm[rest], valid[rest], top[rest]
+        vr, tr = valid[rest], top[rest]
+        Mr = np.where(vr[:, :, None] & vr[:, None, :], Mm[rest], 0.0)
         pos = np.arange(s)
         Mr[:, pos, pos] = np.where(vr, np.einsum("kii->ki", Mr), tr[:, None])
         w, V = np.linalg.eigh(Mr / tr[:, None, None])
