@@ -23,7 +23,7 @@ from robust_sindy.systems import Drone, Lorenz
 from robust_sindy.timeseries.trajectories import Trajectories
 
 from ._trajectories import rk4_trajectory
-from .conftest import random_problem
+from .conftest import mean_field_record, mean_field_rhs, random_problem
 
 
 @pytest.mark.parametrize("seed", range(3))
@@ -127,6 +127,23 @@ def test_the_compiled_walk_matches_the_path_solved_point_by_point(name, monkeypa
     rel = np.abs(walked.objective - cold.objective) / np.abs(cold.objective)
     assert rel.max() <= 1e-10
     assert np.array_equal(walked.n_nonzero, cold.n_nonzero)
+
+
+@pytest.mark.parametrize("t_end", [100.0, 300.0])
+def test_a_walked_path_is_certified_to_the_floating_point_floor_as_one_point_is(t_end):
+    # An exact record with delta far below the states' scale: some path points end with
+    # a relative violation (about 1e-8) within what the rounding of their residuals can
+    # leave (about 1e-6). The point-by-point path certifies them there, as a single fit
+    # does; the compiled walk's verdict does the same.
+    _, x = mean_field_record(t_end, 3000)
+    xdot = np.array([mean_field_rhs(0.0, v) for v in x])
+    theta = PolynomialLibrary(degree=2).fit_transform(x)
+    delta = np.full(3, 1e-6)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", rs.ConvergenceWarning)
+        walked = path(theta, xdot, delta)
+        single = path(theta, xdot, delta, walked.lams, warm_start=False)
+    assert walked.converged.all() and single.converged.all()
 
 
 def test_a_walk_hands_the_points_it_cannot_certify_over_and_goes_on(monkeypatch):
