@@ -291,7 +291,9 @@ class HuberSINDy(BaseEstimator):
     screening_ : Screening or None
         The row screen's details; its masks cover all samples.
     standardizer_ : Standardizer
-        The column scales every decision was taken on.
+        The column scales every decision was taken on: root mean squares of the
+        library of the repaired readings (of the weak form's integrals) and of the
+        targets.
     library_noise_ : tuple (ndarray (n_features,), float)
         The states' noise carried through the library, per column and along its
         least-excited direction; NaN without the screen.
@@ -443,7 +445,7 @@ class HuberSINDy(BaseEstimator):
         weak, why = (
             self._weak_rows(data, temporal, library, z, missing) if allow_weak else (None, "")
         )
-        alternative, guard = None, theta
+        alternative, guard, clean = None, theta, theta
         if weak is None and outlying.any():
             # A glitch need not cost its sample: the row of its repaired readings is the
             # row screen's second choice for a sample it would leave out, where most of
@@ -456,16 +458,19 @@ class HuberSINDy(BaseEstimator):
                 outlying[touched], temporal.repaired[touched], repaired[:, : data.n_states]
             )
             repaired = library.transform(repaired)
+            # The library of every repaired reading: the columns' scales (a glitch of
+            # a thousand standard deviations would otherwise set its columns' weight in
+            # the L1 penalty), and the derivatives' window guard (robust
+            # differentiation only), which tests each state on that state's own usable
+            # samples.
+            clean = theta.copy()
+            clean[touched] = repaired
             if (
                 data.x_dot is None
                 and self.differentiation == "robust"
                 and self.derivative_window == "auto"
             ):
-                # The derivatives' window guard (robust differentiation only) sees the
-                # library of every repaired reading: it tests each state on that
-                # state's own usable samples.
-                guard = theta.copy()
-                guard[touched] = repaired
+                guard = clean
             few = 2 * hit[touched] <= data.n_states
             if few.any():
                 alternative = (touched[few], repaired[few])
@@ -473,7 +478,7 @@ class HuberSINDy(BaseEstimator):
             deriv = derivatives(
                 data, temporal, self.differentiation, self.derivative_window, self.screen, guard
             )
-            del guard  # a copy of the library, not needed further
+            del guard
             design, segments, row_flags = theta, data.segments, flags | missing.controls_suspect
         else:
             # Integrated rows: their targets carry the states' noise, not an estimate's.
@@ -483,7 +488,8 @@ class HuberSINDy(BaseEstimator):
             )
             design, segments = weak.G, weak.segments
             row_flags = weak.touched(flags | missing.controls_suspect, data)[:, None]
-        scaler = Standardizer.from_data(design, deriv.y)
+        scaler = Standardizer.from_data(design if weak is not None else clean, deriv.y)
+        del clean  # a copy of the library, not needed further
         noise = noise_columns(library, z, temporal, scaler.theta_scale)
         sample_noise = noise
         if weak is not None:

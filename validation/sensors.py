@@ -20,7 +20,9 @@ out, the sample times as an array).
     python validation/sensors.py [--seeds 3] [--out validation/results/sensors]
 
 ``--systems Lorenz96_14,Lorenz96_30 --first-seed 5 --derivatives states`` runs other
-channel counts (``Lorenz96_N`` for any N of at least 4), seeds and derivatives.
+channel counts (``Lorenz96_N`` for any N of at least 4), seeds and derivatives;
+``--families glitches --glitches 100,1000`` some of the families, with glitches of
+another size (in spreads of the state).
 """
 
 from __future__ import annotations
@@ -139,7 +141,7 @@ def _family_index(family: str) -> int:
 
 def make_record(
     name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000,
-    noise: float = zoo.BASE_NOISE,
+    noise: float = zoo.BASE_NOISE, glitches: tuple = zoo.ZOO_CONTAMINATION.glitch_range,
 ):  # fmt: skip
     """One case's record: the system, the sample times, the true states, the control
     (or None), the true derivatives and the states as measured."""
@@ -151,16 +153,18 @@ def make_record(
     times = zoo.sample_times(timing or family, n_samples, s.dt, rng)
     t = s.dt * np.arange(n_samples) if times is None else times
     x, u, dx = _simulate(s, t, seed)
-    params = dataclasses.replace(zoo.ZOO_CONTAMINATION, base_noise=noise)
+    params = dataclasses.replace(
+        zoo.ZOO_CONTAMINATION, base_noise=noise, glitch_range=tuple(glitches)
+    )
     noisy, _ = zoo.contaminate_family(x, outliers, rng, params)
     return s, t, x, u, dx, noisy
 
 
 def run_case(
     name: str, family: str, derivatives: str, seed: int, n_samples: int = 2000,
-    noise: float = zoo.BASE_NOISE,
+    noise: float = zoo.BASE_NOISE, glitches: tuple = zoo.ZOO_CONTAMINATION.glitch_range,
 ):  # fmt: skip
-    s, t, _, u, dx, noisy = make_record(name, family, derivatives, seed, n_samples, noise)
+    s, t, _, u, dx, noisy = make_record(name, family, derivatives, seed, n_samples, noise, glitches)
     x_dot = dx if derivatives == "exact" else None
     rows = []
     for method in ("huber", "stlsq"):
@@ -194,18 +198,18 @@ def run_case(
     return rows
 
 
-def table(rows: list[dict]) -> str:
+def table(rows: list[dict], families=FAMILIES) -> str:
     systems = list(dict.fromkeys(r["system"] for r in rows))
     lines = [
         "| system | states | derivatives | "
-        + " | ".join(FAMILIES)
+        + " | ".join(families)
         + " | failures warned | right but warned |",
-        "|" + "---|" * (len(FAMILIES) + 5),
+        "|" + "---|" * (len(families) + 5),
     ]
     for name in systems:
         for der in zoo.DERIVATIVES:
             cells = []
-            for fam in FAMILIES:
+            for fam in families:
                 got = {
                     m: [r["exact"] for r in rows if (r["system"], r["derivatives"], r["family"],
                                                      r["method"]) == (name, der, fam, m)]
@@ -245,9 +249,26 @@ def main(argv=None):
         "--noise", type=float, default=zoo.BASE_NOISE,
         help="Gaussian noise on every reading, relative to each state's spread",
     )  # fmt: skip
+    parser.add_argument(
+        "--families", default=",".join(FAMILIES), help="comma-separated (default: all)"
+    )
+    parser.add_argument(
+        "--glitches", default="{:g},{:g}".format(*zoo.ZOO_CONTAMINATION.glitch_range),
+        help="the glitches' smallest and largest size, in spreads of the state (LO,HI)",
+    )  # fmt: skip
     parser.add_argument("--jobs", type=int, default=2)
     parser.add_argument("--out", default="validation/results/sensors")
     args = parser.parse_args(argv)
+    families = args.families.split(",")
+    for fam in families:
+        if fam not in FAMILIES:
+            parser.error(f"--families: {fam!r} is not one of {', '.join(FAMILIES)}")
+    try:
+        glitches = tuple(float(v) for v in args.glitches.split(","))
+    except ValueError:
+        glitches = ()
+    if len(glitches) != 2 or not 0 < glitches[0] <= glitches[1] < math.inf:
+        parser.error(f"--glitches: expected LO,HI with 0 < LO <= HI; got {args.glitches!r}")
     systems = args.systems.split(",")
     for name in systems:
         try:
@@ -260,8 +281,8 @@ def main(argv=None):
             parser.error(f"--derivatives: {der!r} is not one of {', '.join(zoo.DERIVATIVES)}")
     seeds = range(args.first_seed, args.first_seed + args.seeds)
     cases = [
-        (name, fam, der, seed, args.samples, args.noise) for name in systems for fam in FAMILIES
-        for der in derivatives for seed in seeds
+        (name, fam, der, seed, args.samples, args.noise, glitches) for name in systems
+        for fam in families for der in derivatives for seed in seeds
     ]  # fmt: skip
     from tqdm import tqdm
 
@@ -278,13 +299,19 @@ def main(argv=None):
         f"{args.samples} samples, Gaussian noise {100 * args.noise:.3g} % of each "
         "state's spread; "
         "families and contamination of `robust_sindy.zoo` (`SENSOR_FAMILIES`), and "
-        "`glitches+irregular`: the glitches at uniformly random times. Cells: "
+        "`glitches+irregular`: the glitches at uniformly random times"
+        + (
+            ""
+            if glitches == zoo.ZOO_CONTAMINATION.glitch_range
+            else f" (glitches of {glitches[0]:g} to {glitches[1]:g} spreads)"
+        )
+        + ". Cells: "
         "exact support of `HuberSINDy()` over the seeds (PySINDy STLSQ at its default "
         "threshold, given the same records). The last columns: of the cases "
         "`HuberSINDy()` got wrong, how many warned; of those it got right, how many "
         "warned anyway.",
         "",
-        table(rows),
+        table(rows, families),
         "",
     ]
     (folder / "sensors.md").write_text("\n".join(text))
