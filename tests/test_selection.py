@@ -641,6 +641,19 @@ def test_uncertified_path_points_warn():
     assert not p.converged.all()
 
 
+def test_the_selections_own_refits_do_not_warn_only_its_chosen_point_does():
+    # On a budget too small to certify anything, the refits that score candidates (the
+    # unpenalised fit of every term, the limit of the path's proposals, among them)
+    # stay quiet: a warning about a fit the user never asked for has no use.  The one
+    # warning the selection gives is about the path point it chose.
+    theta, y = random_problem(11, m=600, p=30, n=4, outliers=0.1)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        select(theta, y, 0.5, newton_steps=0, max_iter=1)
+    messages = [str(w.message) for w in caught if issubclass(w.category, rs.ConvergenceWarning)]
+    assert all(m.startswith("the path point chosen") for m in messages), messages
+
+
 def test_no_warning_on_clean_defaults():
     data = Lorenz().generate(t_end=5.0)
     with warnings.catch_warnings():

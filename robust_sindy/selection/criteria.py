@@ -615,11 +615,12 @@ def select(
     if dense_start is not None:
         dense_start = np.asarray(dense_start, dtype=float).reshape(theta.shape[1], y.shape[1])
     stage = _Stage(theta, y, delta_k, tol, method, solver, path_options, dense_start)
-    walk = _Walk(stage, n_lams) if criterion == "bic" else None
     with warnings.catch_warnings():
         # Uncertified path points only propose supports; the refits of the selection
-        # stage are certified on their own, and the chosen point is checked below.
+        # stage (the limit's among them) score candidates, and the chosen point is
+        # checked below.
         warnings.simplefilter("ignore", ConvergenceWarning)
+        walk = _Walk(stage, n_lams) if criterion == "bic" else None
         full = path(
             theta,
             y,
