@@ -130,7 +130,11 @@ def test_print_uses_state_names(lorenz_data, capsys):
 @pytest.mark.parametrize(
     ("call", "match"),
     [
-        (lambda m, d: m.fit(d.x, d.t[::-1]), "t must be strictly increasing"),
+        (lambda m, d: m.fit(d.x, d.t[::-1]), r"t must be strictly increasing: t\[1\] = "),
+        (
+            lambda m, d: m.fit(d.x, np.where(np.arange(d.t.size) == 7, d.t[6], d.t)),
+            r"t\[7\] = \S+ repeats t\[6\] = \S+ \(a time stamp logged twice",
+        ),
         (lambda m, d: m.fit(d.x, d.t[:-1]), "t has 1000 time points"),
         (lambda m, d: m.fit(d.x, d.t, x_dot=d.x_dot[:-1]), "x_dot has shape"),
         (lambda m, d: m.fit(d.x, d.t, u=d.x[:-1]), "u has 1000 samples"),

@@ -134,6 +134,17 @@ def check_time(t, name: str = "t", *, min_length: int = 2) -> np.ndarray:
     t = as_float_array(t, name, (1,))
     if t.size < min_length:
         raise ValueError(f"{name} must hold at least {min_length} time points; got {t.size}")
-    if np.any(np.diff(t) <= 0):
-        raise ValueError(f"{name} must be strictly increasing")
+    steps = np.diff(t)
+    if np.any(steps <= 0):
+        i = int(np.argmax(steps <= 0)) + 1
+        what = "repeats" if steps[i - 1] == 0 else "comes before"
+        raise ValueError(
+            f"{name} must be strictly increasing: {name}[{i}] = {float(t[i])!r} {what} "
+            f"{name}[{i - 1}] = {float(t[i - 1])!r}"
+            + (
+                " (a time stamp logged twice: drop or merge the duplicated samples)"
+                if what == "repeats"
+                else " (sort the samples by time, or pass each record as its own trajectory)"
+            )
+        )
     return t
