@@ -542,7 +542,8 @@ def test_the_compiled_iteration_certifies_nearly_every_column_of_the_automatic_p
     # kernel handed 14 of about 70 columns to the NumPy steps on the first record); the
     # refits of column selections (column-major) run compiled too.  A rate over three
     # records: a hard path point the kernel stalls on is handed to the NumPy iteration
-    # (0 to 3 columns a record, on the code of this test's version and the one before).
+    # (0 to 3 of about 70 columns a record, measured; the single record asserted before
+    # gave 0 or 1 depending on the library's scales).
     from robust_sindy.bench import bench_data
 
     statuses = _record_kernel_statuses(monkeypatch)
