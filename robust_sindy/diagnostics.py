@@ -242,8 +242,13 @@ class Diagnostics:
         ``pruned`` report.  For an equation whose support the weak form's rescoring
         replaced (``errors_in_variables``), the margin is that of the rescoring's score
         (chi-square under the noise the terms carry plus ``log(rows)`` per term) over
-        the supports it fitted.  With ``constraints``, over the search's candidates, as
-        ``bic_margin``.
+        the supports it fitted; where it kept the support and the noise explains its
+        chi-square, the smaller of the two margins (``rival_by_noise`` says which
+        equations' margin is the rescoring's).  With ``constraints``, over the search's
+        candidates, as ``bic_margin``.
+    rival_by_noise : ndarray of bool (n,)
+        Equations whose ``rival_margin`` is that of the weak form's score under the
+        noise the terms carry.
     subset_size : ndarray of int (n,)
         Besides the ``lam`` path's, the criterion compares the best supports of every
         size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
@@ -372,6 +377,7 @@ class Diagnostics:
     temporal_flagged_left_out: int = 0
     support_noise: np.ndarray = field(default_factory=lambda: np.zeros(0))
     rival_margin: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    rival_by_noise: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=bool))
     pilot_relative_scale: np.ndarray = field(default_factory=lambda: np.zeros(0))
     selected_terms: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     constraint_residual: float = float("nan")
@@ -447,7 +453,15 @@ class Diagnostics:
             "  terms left out below the noise floor per equation: "
             f"{np.isfinite(self.below_floor).sum(axis=1).tolist()}",
             f"  BIC margin to the next support: {np.array2string(self.bic_margin, precision=3)}"
-            "; to the next other model: " + np.array2string(self.rival_margin, precision=3),
+            "; to the next other model: "
+            + np.array2string(self.rival_margin, precision=3)
+            + (
+                " (for equations "
+                f"{np.flatnonzero(self.rival_by_noise).tolist()}: the score under the noise "
+                "their terms carry)"
+                if self.rival_by_noise.any()
+                else ""
+            ),
             f"  supports searched exhaustively up to size: {self.subset_size.tolist()}"
             + (
                 " (chosen from that search: equations "
@@ -893,19 +907,14 @@ def _candidates_where(d) -> str:
 
 def _runner_up_score(d, close) -> str:
     """The score the close-runner-up warning's margins are on: the BIC (under
-    constraints, summed over the equations), or for the equations the weak form
-    replaced, the score under the noise their terms carry."""
+    constraints, summed over the equations), or for the equations of
+    ``rival_by_noise``, the score under the noise their terms carry."""
     if np.isfinite(d.constraint_residual):
         return "BIC summed over the equations, under the constraints"
-    replaced = [
-        k for k in close if k < d.errors_in_variables.size and d.errors_in_variables[k] == 1
-    ]
-    if not replaced:
+    noise = [k for k in close if k < d.rival_by_noise.size and d.rival_by_noise[k]]
+    if not noise:
         return "BIC"
-    return (
-        f"score (BIC; for equations {replaced}, replaced under the noise their terms "
-        "carry, that score)"
-    )
+    return f"score (BIC; for equations {noise}, the score under the noise their terms carry)"
 
 
 def kind_of(caught: warnings.WarningMessage) -> str:
@@ -970,18 +979,25 @@ def _condition_numbers(theta_kept, coef) -> np.ndarray:
     return cond
 
 
-def _rival_margin(selection, rescored, standard, n) -> np.ndarray:
-    """The score margin to the next other model (``Diagnostics.rival_margin``): the
-    selection's BIC, except for the equations whose support the weak form's rescoring
-    replaced, where that score decided (:meth:`~robust_sindy.selection.variables.
-    Rescored.rival_margin`): the BIC's own choice, which it beat by more than the margin,
-    would otherwise read as a runner-up at a difference of zero."""
+def _rival_margin(selection, rescored, standard, n) -> tuple[np.ndarray, np.ndarray]:
+    """The score margin to the next other model (``Diagnostics.rival_margin``) and
+    whether it is that of the weak form's score under the noise the terms carry
+    (``Diagnostics.rival_by_noise``): the selection's BIC, except for the equations
+    whose support the weak form's rescoring replaced, where that score decided
+    (:meth:`~robust_sindy.selection.variables.Rescored.rival_margin`: the BIC's own
+    choice, which it beat by more than the margin, would otherwise read as a runner-up
+    at a difference of zero), and the smaller of the two where the rescoring kept the
+    support under a score it trusts (a rival that the noise of the columns makes look
+    worse to the BIC is as close as that score puts it)."""
+    by_noise = np.zeros(n, dtype=bool)
     if selection is None or selection.criterion != "bic":
-        return np.full(n, np.nan)
+        return np.full(n, np.nan), by_noise
     margin = selection.rival_margin_to(standard)
-    if rescored is not None and rescored.switched.any():
-        margin = np.where(rescored.switched, rescored.rival_margin(standard), margin)
-    return margin
+    if rescored is not None:
+        noise = rescored.rival_margin(standard)
+        by_noise = rescored.switched | (rescored.trusted & (noise < margin))
+        margin = np.where(by_noise, noise, margin)
+    return margin, by_noise
 
 
 def diagnose(
@@ -1062,11 +1078,12 @@ def diagnose(
         if selection is not None and selection.criterion == "bic"
         else np.full(n, np.nan)
     )
-    rival_margin = _rival_margin(selection, rescored, standard, n)
+    rival_margin, rival_by_noise = _rival_margin(selection, rescored, standard, n)
     if constrained is not None and constrained.candidates is not None:
         # The search under the constraints chose the model: its candidates are the
         # alternatives, and a term it put back is not dropped.
         bic_margin, rival_margin = constrained.margins()
+        rival_by_noise = np.zeros(n, dtype=bool)
         pruned = np.where(coef != 0, np.nan, pruned)
         if constrained.pruned is not None:
             pruned = np.where(np.isnan(constrained.pruned), pruned, constrained.pruned)
@@ -1128,6 +1145,7 @@ def diagnose(
         below_floor=np.ascontiguousarray(below.T),
         bic_margin=bic_margin,
         rival_margin=rival_margin,
+        rival_by_noise=rival_by_noise,
         subset_size=(
             selection.subset_size.copy() if selection is not None else np.zeros(n, dtype=int)
         ),

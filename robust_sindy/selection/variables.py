@@ -291,6 +291,10 @@ class Rescored:
         (``nan`` for equations not rescored).
     candidates : ndarray of int (n,)
         The distinct supports scored per equation.
+    trusted : ndarray of bool (n,)
+        Equations whose support stayed and whose chi-square the states' noise explains
+        (at most :data:`NOISE_EXPLAINS` times the rows, as a replacement needs): there
+        the score judges the selection's choice too.
     scored : list
         Per equation, every support fitted (the candidates and the searches' steps):
         ``(supports (S, p) bool, scores (S,), coefficients (S, p))``, standardised.
@@ -301,17 +305,20 @@ class Rescored:
     chosen_score: np.ndarray
     best_score: np.ndarray
     candidates: np.ndarray
+    trusted: np.ndarray
     scored: list = field(default_factory=list, repr=False)
 
     def rival_margin(self, reference: np.ndarray) -> np.ndarray:
-        """Per replaced equation, the score of the best support fitted that is another
-        model than ``reference`` (p, n, standardised: the model finally reported; it
-        leaves out one of its terms or changes one of its coefficients by more than
-        half, as :func:`~robust_sindy.selection.criteria.score_margin` counts rivals)
-        minus the best score, ``inf`` where none is; ``nan`` for the equations not
-        replaced, whose choice the selection's BIC made."""
+        """Per replaced or :attr:`trusted` equation, the score of the best support
+        fitted that is another model than ``reference`` (p, n, standardised: the model
+        finally reported; it leaves out one of its terms or changes one of its
+        coefficients by more than half, as
+        :func:`~robust_sindy.selection.criteria.score_margin` counts rivals) minus the
+        score of the support kept, ``inf`` where none is (negative where a rival scored
+        better, by no more than the margin a replacement needs); ``nan`` for the other
+        equations, where the score is not a yardstick."""
         out = np.full(self.switched.shape, np.nan)
-        for k in np.flatnonzero(self.switched):
+        for k in np.flatnonzero(self.switched | self.trusted):
             supports, scores, coefs = self.scored[k]
             best = np.flatnonzero(np.all(supports == self.support[:, k], axis=1))
             out[k] = score_margin(
@@ -333,6 +340,7 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
     penalty = np.log(max(rows, 2))
     support = chosen != 0
     switched = np.zeros(n, dtype=bool)
+    trusted = np.zeros(n, dtype=bool)
     chosen_score = np.full(n, np.nan)
     best_score = np.full(n, np.nan)
     counts = np.zeros(n, dtype=int)
@@ -369,11 +377,13 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
         if explained and own - scores[best] > margin:
             support[:, k] = np.frombuffer(best, dtype=bool)
             switched[k] = True
+        else:
+            trusted[k] = own - penalty * int(support[:, k].sum()) <= NOISE_EXPLAINS * rows
         fitted = np.array([np.frombuffer(key, dtype=bool) for key in memo])
         chi2 = np.array([chi2 for chi2, _ in memo.values()])
         coefs = np.array([xi for _, xi in memo.values()])
         scored.append((fitted, chi2 + penalty * fitted.sum(axis=1), coefs))
-    return Rescored(support, switched, chosen_score, best_score, counts, scored)
+    return Rescored(support, switched, chosen_score, best_score, counts, trusted, scored)
 
 
 def dropped_evidence(g, y, before, after, start, noise: RowNoise) -> np.ndarray:
