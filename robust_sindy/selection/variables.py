@@ -328,6 +328,14 @@ class Rescored:
         return out
 
 
+def _explained(scores: dict, key: bytes, penalty: float, rows: int) -> bool:
+    """Whether the support ``key``'s chi-square (its score less ``penalty`` per term)
+    is within what the states' noise explains (:data:`NOISE_EXPLAINS` times the
+    ``rows``): there the score is a yardstick."""
+    size = int(np.frombuffer(key, dtype=bool).sum())
+    return scores[key] - penalty * size <= NOISE_EXPLAINS * rows
+
+
 def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Rescored:
     """Score the chosen support and every candidate of ``pools`` (arrays (L, p, n) of
     coefficients, standardised, whose nonzero patterns are the candidates) per
@@ -370,15 +378,14 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
             if score < scores.get(found, np.inf):
                 scores[found] = score
         best = min(scores, key=scores.get)
-        own = scores[support[:, k].tobytes()]
+        kept = support[:, k].tobytes()
+        own = scores[kept]
         chosen_score[k], best_score[k] = own, scores[best]
-        size = int(np.frombuffer(best, dtype=bool).sum())
-        explained = scores[best] - penalty * size <= NOISE_EXPLAINS * rows
-        if explained and own - scores[best] > margin:
+        if _explained(scores, best, penalty, rows) and own - scores[best] > margin:
             support[:, k] = np.frombuffer(best, dtype=bool)
             switched[k] = True
         else:
-            trusted[k] = own - penalty * int(support[:, k].sum()) <= NOISE_EXPLAINS * rows
+            trusted[k] = _explained(scores, kept, penalty, rows)
         fitted = np.array([np.frombuffer(key, dtype=bool) for key in memo])
         chi2 = np.array([chi2 for chi2, _ in memo.values()])
         coefs = np.array([xi for _, xi in memo.values()])
