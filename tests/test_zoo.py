@@ -116,3 +116,25 @@ def test_the_scaling_run_times_and_checks_each_method():
     assert huber.true == 5 * 4 and huber.terms == 21
     text = zoo.scaling_table(rows)
     assert "| 5 (21) | 1500 | clean | " in text and "exact" in text
+
+
+def test_the_sensor_scripts_ring_of_lorenz_systems_has_the_coefficients_of_its_equations():
+    # validation/sensors.py's LorenzRing_N is scored against its coefficients on the
+    # degree-2 monomials: they must give the ring's equations (each Lorenz system driven
+    # through its first state by the next one's) at any state.
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "validation" / "sensors.py"
+    spec = importlib.util.spec_from_file_location("sensors_script", path)
+    sensors = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(sensors)
+    system = sensors._system("LorenzRing_3")
+    v = np.random.default_rng(0).normal(scale=10.0, size=(50, 9))
+    x, y, z = v[:, 0::3], v[:, 1::3], v[:, 2::3]
+    expected = np.empty_like(v)
+    expected[:, 0::3] = 10.0 * (y - x) + 0.5 * (np.roll(x, -1, axis=1) - x)
+    expected[:, 1::3] = x * (28.0 - z) - y
+    expected[:, 2::3] = x * y - 8.0 / 3.0 * z
+    assert np.allclose(system.library(v) @ system.coef, expected, rtol=1e-12, atol=1e-9)
+    assert int((system.coef != 0).sum()) == 8 * 3  # three terms in x', three in y', two in z'

@@ -20,7 +20,8 @@ out, the sample times as an array).
     python validation/sensors.py [--seeds 3] [--out validation/results/sensors]
 
 ``--systems Lorenz96_14,Lorenz96_30 --first-seed 5 --derivatives states`` runs other
-channel counts (``Lorenz96_N`` for any N of at least 4), seeds and derivatives;
+channel counts (``Lorenz96_N`` for any N of at least 4; ``LorenzRing_N``, N Lorenz
+systems on a ring, each driven by the next: 3 N channels), seeds and derivatives;
 ``--families glitches --glitches 100,1000`` some of the families, with glitches of
 another size (in spreads of the state).
 """
@@ -93,10 +94,31 @@ def _system(name: str) -> System:
         coef[at[(0, 0, 1)], 1], coef[at[(1, 1, 1)], 1] = -1.0, -1.0
         return System(name, 2, 3, coef, [0.05, 0.0], 0.02, burn=0.0)
     prefix, _, size = name.partition("_")
-    if prefix != "Lorenz96" or not size.isdigit():
-        raise ValueError(f"unknown system {name!r}: DuffingForced, Hopf or Lorenz96_N")
+    if prefix not in ("Lorenz96", "LorenzRing") or not size.isdigit():
+        raise ValueError(
+            f"unknown system {name!r}: DuffingForced, Hopf, Lorenz96_N or LorenzRing_N"
+        )
+    if prefix == "LorenzRing":
+        return _lorenz_ring(name, int(size))
     zs = lorenz96(int(size))
     return System(name, zs.n_states, 2, zs.coef, zs.ic, zs.dt)
+
+
+def _lorenz_ring(name: str, size: int, coupling: float = 0.5) -> System:
+    """``size`` Lorenz systems (3 ``size`` states) on a ring, each driven through its
+    first state by the next one's: ``x_i' = 10 (y_i - x_i) + c (x_{i+1} - x_i)``,
+    ``y_i' = x_i (28 - z_i) - y_i``, ``z_i' = x_i y_i - 8/3 z_i``."""
+    n = 3 * size
+    powers = _powers(n, 2)
+    at = {c: j for j, c in enumerate(powers)}
+    coef = np.zeros((len(powers), n))
+    for i in range(size):
+        x, y, z, nxt = 3 * i, 3 * i + 1, 3 * i + 2, 3 * ((i + 1) % size)
+        coef[at[(y,)], x], coef[at[(x,)], x], coef[at[(nxt,)], x] = 10.0, -10.0 - coupling, coupling
+        coef[at[(x,)], y], coef[at[(x, z)], y], coef[at[(y,)], y] = 28.0, -1.0, -1.0
+        coef[at[(x, y)], z], coef[at[(z,)], z] = 1.0, -8.0 / 3.0
+    ic = np.ravel([[1.0 + 0.3 * i, 1.0 - 0.2 * i, 20.0 + i] for i in range(size)])
+    return System(name, n, 2, coef, ic, 0.01)
 
 
 def _simulate(s: System, t: np.ndarray, seed: int):
