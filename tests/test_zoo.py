@@ -138,3 +138,5 @@ def test_the_sensor_scripts_ring_of_lorenz_systems_has_the_coefficients_of_its_e
     expected[:, 2::3] = x * y - 8.0 / 3.0 * z
     assert np.allclose(system.library(v) @ system.coef, expected, rtol=1e-12, atol=1e-9)
     assert int((system.coef != 0).sum()) == 8 * 3  # three terms in x', three in y', two in z'
+    with pytest.raises(ValueError, match="LorenzRing_N needs N of at least 2"):
+        sensors._system("LorenzRing_1")

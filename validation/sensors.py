@@ -107,7 +107,9 @@ def _system(name: str) -> System:
 def _lorenz_ring(name: str, size: int, coupling: float = 0.5) -> System:
     """``size`` Lorenz systems (3 ``size`` states) on a ring, each driven through its
     first state by the next one's: ``x_i' = 10 (y_i - x_i) + c (x_{i+1} - x_i)``,
-    ``y_i' = x_i (28 - z_i) - y_i``, ``z_i' = x_i y_i - 8/3 z_i``."""
+    ``y_i' = x_i (28 - z_i) - y_i``, ``z_i' = x_i y_i - 8/3 z_i``; at least two."""
+    if size < 2:  # a ring of one drives itself: the coupling cancels
+        raise ValueError(f"unknown system {name!r}: LorenzRing_N needs N of at least 2")
     n = 3 * size
     powers = _powers(n, 2)
     at = {c: j for j, c in enumerate(powers)}
