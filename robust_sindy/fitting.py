@@ -9,7 +9,7 @@ from numbers import Real
 
 import numpy as np
 
-from .core.certificates import certify, rounding_floor, within_floor
+from .core.certificates import accept_within_floor, certify, within_floor
 from .core.scaling import fitted_scale_factor, robust_scale
 from .core.validation import (
     as_float_array,
@@ -343,14 +343,9 @@ def fast_path_verdict(theta, y, out, kkt, cert, delta, tol, gap_tol, floor=True)
     cancel, where no method does better)."""
     ok = out.converged & ((kkt <= tol) | (cert.rel_gap <= gap_tol))
     if floor and not ok.all():
-        found = np.array(out.info.get("floor", np.full(ok.shape, np.nan)), dtype=float)
-        new = np.flatnonzero(~ok & np.isnan(found))
-        if new.size:
-            found[new] = rounding_floor(
-                theta, y[:, new], out.coef[:, new], np.asarray(delta)[new], cert.residual[:, new]
-            )
-        ok |= within_floor(kkt, found)
-        out.info["floor"] = found
+        ok, out.info["floor"] = accept_within_floor(
+            theta, y, out.coef, delta, kkt, ok, cert.residual, out.info.get("floor")
+        )
     return ok
 
 

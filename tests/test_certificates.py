@@ -106,6 +106,33 @@ def test_the_rounding_floor_forgives_rounding_only(seed):
     assert np.all(lad == 0.0)
 
 
+def test_a_violation_within_its_floor_is_accepted_and_nothing_else_changes():
+    # accept_within_floor, shared by a single fit's verdict and the walked path's: a
+    # column already accepted stays so (its floor not computed: NaN); a rejected one
+    # is accepted exactly when its violation is within its floor (computed here at
+    # y - theta coef, or the floor given, which is not recomputed).
+    from robust_sindy.core.certificates import accept_within_floor, rounding_floor
+
+    theta, y = random_problem(0)
+    coef = rs.fit(theta, y, delta=1.0, lam=1.0).coef
+    n = y.shape[1]
+    tiny = 1e-13 * np.abs(y).max()
+    exact = theta @ coef + tiny  # residuals at the rounding level: a large floor
+    floor = rounding_floor(theta, exact, coef, np.ones(n), exact - theta @ coef)
+    assert floor.min() > 1e-4
+    ok = np.zeros(n, dtype=bool)
+    ok[0] = True
+    kkt = np.where(np.arange(n) % 2 == 1, 0.5 * floor, 2.0 * floor)  # odd ones within
+    accepted, found = accept_within_floor(theta, exact, coef, np.ones(n), kkt, ok)
+    assert np.array_equal(accepted, ok | (np.arange(n) % 2 == 1))
+    # (at residuals of the rounding level, recomputed: the same floor to within 1 %)
+    assert np.isnan(found[0]) and np.allclose(found[1:], floor[1:], rtol=1e-2)
+    given = np.full(n, np.nan)
+    given[1:] = 1e-30  # given floors are used as they are: nothing forgiven now
+    accepted, found = accept_within_floor(theta, exact, coef, np.ones(n), kkt, ok, floor=given)
+    assert np.array_equal(accepted, ok) and np.array_equal(found, given, equal_nan=True)
+
+
 @pytest.mark.parametrize("scale", [1e-150, 1e-50, 1e50, 1e150])
 def test_fast_path_is_certified_and_invariant_at_extreme_library_scales(scale):
     theta, y = _outlier_problem()

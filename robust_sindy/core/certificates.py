@@ -208,6 +208,21 @@ def within_floor(kkt, floor) -> np.ndarray:
     return (floor > 0) & (np.asarray(kkt) <= floor)
 
 
+def accept_within_floor(theta, y, coef, delta, kkt, ok, residual=None, floor=None):
+    """``ok`` (n,), the columns of ``coef`` (p, n) a certificate accepted, with those it
+    rejected accepted where their relative KKT violation ``kkt`` is within their
+    :func:`rounding_floor`; and the floors (n,): ``floor`` where given (NaN: not
+    computed), else computed for the rejected columns (at the residuals ``residual``
+    (m, n), else ``y - theta coef``) and NaN for the others."""
+    floor = np.full(np.shape(ok), np.nan) if floor is None else np.array(floor, dtype=float)
+    new = np.flatnonzero(~ok & np.isnan(floor))
+    if new.size:
+        xi = coef[:, new]
+        r = y[:, new] - theta @ xi if residual is None else residual[:, new]
+        floor[new] = rounding_floor(theta, y[:, new], xi, np.asarray(delta)[new], r)
+    return ok | within_floor(kkt, floor), floor
+
+
 def certify(
     theta: np.ndarray,
     y: np.ndarray,

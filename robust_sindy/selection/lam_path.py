@@ -9,7 +9,7 @@ from dataclasses import dataclass
 import numpy as np
 from tqdm import tqdm
 
-from ..core.certificates import certify, rounding_floor, within_floor
+from ..core.certificates import accept_within_floor, certify
 from ..core.losses import huber_psi
 from ..core.validation import as_float_array, check_int, check_positive, check_problem, loss_delta
 from ..fitting import (
@@ -243,15 +243,10 @@ def path(
                 theta, y, coef, delta_k, grid, col_norms, progress
             )
             conv[:] = accepted(walk[1], kkt, rel_gap)
-            # As for a single fit (fast_path_verdict): a violation within what the
-            # rounding of the point's residuals can leave is certified there.
+            # As for a single fit (fast_path_verdict, by the same helper): a violation
+            # within what the rounding of the point's residuals can leave is certified.
             for i in np.flatnonzero(~conv.all(axis=1)):
-                cols = np.flatnonzero(~conv[i])
-                xi = coef[i][:, cols]
-                floor = rounding_floor(
-                    theta, y[:, cols], xi, delta_k[cols], y[:, cols] - theta @ xi
-                )
-                conv[i, cols] = within_floor(kkt[i, cols], floor)
+                conv[i] = accept_within_floor(theta, y, coef[i], delta_k, kkt[i], conv[i])[0]
             walked = np.ones((L, n), dtype=bool)
             for i in range(L):
                 stop_after(i, np.flatnonzero(active))
