@@ -22,7 +22,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from ..core.certificates import certify, rounding_floor, within_floor
+from ..core.certificates import accept_within_floor, certify
 from ..core.losses import huber_psi
 from . import _kernel
 from .admm import solve_admm
@@ -215,12 +215,14 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
     floor = np.full(n, np.nan)
     stuck = np.flatnonzero(~converged & ~unresolvable)
     if stuck.size:
-        ys_, ds_ = y[:, stuck], delta[stuck]
-        cert = certify(theta, ys_, coef[:, stuck], ds_, lam[:, stuck])
-        floor[stuck] = rounding_floor(theta, ys_, coef[:, stuck], ds_, cert.residual)
+        ys_, ds_, xs_ = y[:, stuck], delta[stuck], coef[:, stuck]
+        cert = certify(theta, ys_, xs_, ds_, lam[:, stuck])
+        ok, floor[stuck] = accept_within_floor(
+            theta, ys_, xs_, ds_, cert.kkt, np.zeros(stuck.size, dtype=bool), cert.residual
+        )
         passes += 2
         for i, k in enumerate(stuck):
-            if within_floor(cert.kkt[i], floor[k]):
+            if ok[i]:
                 converged[k] = True
                 messages[k] = (
                     f"certified to the floating-point floor after {steps[k]} Newton steps: "
