@@ -100,3 +100,27 @@ def test_newton_and_the_row_screen_are_the_same_on_one_thread_and_on_several(mon
     assert s3.outliers.sum() > 0
     # The pieces did run in threads (each module's per-column function is `column`).
     assert handed.count("column") > 100
+
+
+def test_the_selection_is_the_same_on_one_thread_and_on_several(monkeypatch):
+    """The selection stage's refits (the limits, the path's proposals, the subset
+    search) run the equations side by side: the same choice, scores and candidates as
+    in one thread, the refits' ConvergenceWarning filtered without leaking out."""
+    import warnings
+
+    from robust_sindy.selection import select
+
+    theta, y = random_problem(11, m=500, p=12, n=4, outliers=0.1)
+    filters = list(warnings.filters)
+    out = []
+    for k in (3, 1):
+        monkeypatch.setattr(_threads, "threads", lambda k=k: k)
+        with one_thread():
+            out.append(select(theta, y, 0.5, max_iter=3))  # refits stop uncertified
+    several, one = out
+    assert warnings.filters == filters
+    for name in ("coef", "candidates", "subsets"):
+        assert np.array_equal(getattr(several, name), getattr(one, name)), name
+    assert np.array_equal(several.scores, one.scores, equal_nan=True)
+    assert np.array_equal(several.subset_scores, one.subset_scores, equal_nan=True)
+    assert several.subsets.shape[0] > 0  # the subset search ran

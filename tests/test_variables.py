@@ -5,8 +5,14 @@ import numpy as np
 import scipy.integrate
 import scipy.sparse
 
+from robust_sindy.core import threads as _threads
 from robust_sindy.selection.bias import LibraryNoise
-from robust_sindy.selection.variables import RowNoise, gls_score, rescore_supports
+from robust_sindy.selection.variables import (
+    RowNoise,
+    _added_chi2,
+    gls_score,
+    rescore_supports,
+)
 
 RATE = 20.0  # x0' = RATE (x1 - x0): x0 follows x1 closely, a small difference of large terms
 
@@ -36,13 +42,15 @@ def _test_functions(m, dt, half=25, step=5, power=4):
     return scipy.sparse.csr_array(w), scipy.sparse.csr_array(s)
 
 
-def _rows(seed, level=0.01):
+def _rows(seed, level=0.01, both=False):
+    """Weak rows of the follower: library (the states), target (of ``x0``'s equation,
+    or of both equations with ``both``) and their noise."""
     x, dt = _follower()
     sigma = level * np.sqrt(np.mean(x**2, axis=0))
     noisy = x + sigma * np.random.default_rng(seed).normal(size=x.shape)
     w, s = _test_functions(x.shape[0], dt)
     g = w @ noisy  # the library is the states themselves: first order is exact
-    b = -(s @ noisy[:, 0])
+    b = -(s @ noisy) if both else -(s @ noisy[:, 0])
     ones = np.ones((x.shape[0], 1))
     noise = RowNoise(w, s, LibraryNoise(2, [[0], [1]], [sigma[0] * ones, sigma[1] * ones]), sigma)
     return g, b, noise
@@ -320,3 +328,51 @@ def test_a_term_standing_in_for_another_through_a_nearly_constant_factor_is_not_
         assert any(f"equations [{k}" in m or f", {k}" in m for m in close), (wrong, close)
     if wrong:
         assert model.diagnostics_.rival_by_noise[wrong].all()
+
+
+def _chi2_by_lstsq(gw, yw, support):
+    out = []
+    for j in np.flatnonzero(~support & np.any(gw != 0, axis=0)):
+        on = np.flatnonzero(support | (np.arange(gw.shape[1]) == j))
+        sol = np.linalg.lstsq(gw[:, on], yw, rcond=None)[0]
+        r = yw - gw[:, on] @ sol
+        out.append((float(r @ r), int(j)))
+    return out
+
+
+def test_the_searchs_ranking_of_added_terms_is_least_squares_on_each_augmented_support():
+    """One factorisation of the support ranks every added term as a least-squares fit
+    on the support and that term would (columns of very different scales, empty and
+    rank-deficient supports, a zero column, a target nearly in the span)."""
+    rng = np.random.default_rng(3)
+    for trial in range(60):
+        rows, p = int(rng.integers(15, 300)), int(rng.integers(3, 40))
+        gw = rng.standard_normal((rows, p)) * np.exp(rng.normal(0.0, 2.0, p))
+        gw[:, p - 1] = 0.0
+        support = np.zeros(p, dtype=bool)
+        support[rng.choice(p - 1, int(rng.integers(0, min(p - 2, 7))), replace=False)] = True
+        if trial % 4 == 0 and support.sum() >= 2:  # a support holding the same term twice
+            first, second = np.flatnonzero(support)[:2]
+            gw[:, second] = 3.0 * gw[:, first]
+        level = 1e-6 if trial % 3 == 0 else 1.0
+        yw = gw[:, :2] @ rng.standard_normal(2) + level * rng.standard_normal(rows)
+        ours, reference = _added_chi2(gw, yw, support), _chi2_by_lstsq(gw, yw, support)
+        assert [j for _, j in ours] == [j for _, j in reference]
+        assert p - 1 not in [j for _, j in ours]
+        a, b = np.array([c for c, _ in ours]), np.array([c for c, _ in reference])
+        assert np.allclose(a, b, rtol=1e-6, atol=1e-9 * float(yw @ yw))
+
+
+def test_the_rescoring_is_the_same_on_one_thread_and_on_several(monkeypatch):
+    """The equations are scored side by side: each writes only its own entries."""
+    g, y, noise = _rows(4, both=True)
+    pool = np.array([[[0.0, 1.0], [1.0, 0.0]], [[-RATE, 0.0], [RATE, 1.0]]])
+    chosen = np.array([[0.0, 0.0], [1.0, 1.0]])
+    monkeypatch.setattr(_threads, "threads", lambda: 2)
+    several = rescore_supports(g, y, chosen, [pool], noise, margin=6.0)
+    monkeypatch.setattr(_threads, "threads", lambda: 1)
+    one = rescore_supports(g, y, chosen, [pool], noise, margin=6.0)
+    for name in ("support", "switched", "chosen_score", "best_score", "candidates", "trusted"):
+        assert np.array_equal(getattr(several, name), getattr(one, name), equal_nan=True), name
+    for a, b_ in zip(several.scored, one.scored, strict=True):
+        assert all(np.array_equal(u, v) for u, v in zip(a, b_, strict=True))

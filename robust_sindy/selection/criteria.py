@@ -11,6 +11,7 @@ from tqdm import tqdm
 
 from ..core.losses import huber, huber_psi
 from ..core.statistics import correlation_time
+from ..core.threads import map_threads
 from ..core.validation import check_int, check_problem, loss_delta
 from ..fitting import HUBER_EFFICIENCY_CONSTANT, ConvergenceWarning, auto_delta, check_huber_method
 from .lam_path import Path, path, pilot_budget
@@ -205,10 +206,24 @@ class _Stage:
         """The stage on column ``k`` from the coefficients ``coef`` (p,)."""
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            return select_column(
-                coef, self.tol, STAGE_ROUNDS, self.col, self.ynorm[k],
-                lambda keep: self.refit(k, keep), self.caches[k],
-            )  # fmt: skip
+            return self._column(k, coef)
+
+    def _column(self, k, coef):
+        return select_column(
+            coef, self.tol, STAGE_ROUNDS, self.col, self.ynorm[k],
+            lambda keep: self.refit(k, keep), self.caches[k],
+        )  # fmt: skip
+
+    def side_by_side(self, work, columns) -> list:
+        """``[work(k) for k in columns]``, the columns in threads: ``work(k)`` may call
+        :meth:`refit` and :meth:`_column` of column ``k`` only (each column's cache is its
+        own).  The refits' ``ConvergenceWarning`` is filtered here, in the calling
+        thread, as :meth:`column` does: a filter set and restored in several threads at
+        once would leave the process's filters in the state of whichever thread
+        restored last."""
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore", ConvergenceWarning)
+            return map_threads(work, list(columns))
 
 
 def _stage_all(stage: _Stage, path_coef):
@@ -241,15 +256,17 @@ class _Walk:
         p, n = theta.shape[1], y.shape[1]
         every = stage.every
         self.stage = stage
-        self.limit = np.stack([stage.column(k, stage.refit(k, every)) for k in range(n)], 1)
+        self.limit = np.stack(
+            stage.side_by_side(lambda k: stage._column(k, stage.refit(k, every)), range(n)), 1
+        )
         self.candidates = np.zeros((n_points, p, n))
         self.used = np.zeros((n_points, n), dtype=bool)
         self.run = np.zeros(n, dtype=int)
 
     def until(self, i, coef, cols):
         done = np.zeros(cols.size, dtype=bool)
-        for a, k in enumerate(cols):
-            c = self.stage.column(k, coef[:, k])
+        proposed = self.stage.side_by_side(lambda k: self.stage._column(k, coef[:, k]), cols)
+        for a, (k, c) in enumerate(zip(cols, proposed, strict=True)):
             self.candidates[i, :, k] = c
             self.used[i, k] = True
             on, limit = c != 0, self.limit[:, k] != 0
@@ -362,8 +379,9 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
     basis = np.linalg.qr(whole_library)[0]  # shared by every equation's floor
     # Shared by every equation's search of pairs and beyond (single terms need less).
     gram = whole_library.T @ whole_library if subset_sizes(whole_library.shape[1]) > 1 else None
-    found, sizes = {}, np.zeros(n, dtype=int)
-    for k in range(n):
+    found, sizes = [[] for _ in range(n)], np.zeros(n, dtype=int)
+
+    def equation(k):  # writes only equation k's entries: the equations run side by side
         r = np.abs(y[:, k] - theta @ reference[:, k])
         weights = np.minimum(1.0, delta[k] / np.maximum(r, np.finfo(float).tiny))
 
@@ -379,20 +397,21 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
         # Sizes whose penalty alone takes them past the best score are not searched.
         reach = np.ceil((top - floor) / penalty[k]) - 1 if np.isfinite(top) else p
         masks, sizes[k] = best_subsets(theta, y[:, k], weights, max_size=reach, gram=gram)
-        found[k] = []
         for mask in masks:
             if bic(whole, mask.sum()) >= top:
                 continue
             dual = _loss_floor(theta[:, mask], y[:, k], weights, delta[k])
             if bic(dual, mask.sum()) >= top:
                 continue
-            c = stage.column(k, stage.refit(k, mask))
+            c = stage._column(k, stage.refit(k, mask))
             found[k].append((c, information_criterion(theta, y[:, k], c, delta[k], tau=tau[k])))
             top = min(top, found[k][-1][1])
-    count = max((len(v) for v in found.values()), default=0)
+
+    stage.side_by_side(equation, range(n))
+    count = max((len(v) for v in found), default=0)
     cands = np.zeros((count, p, n))
     scores = np.full((count, n), np.nan)
-    for k, pairs in found.items():
+    for k, pairs in enumerate(found):
         for i, (c, v) in enumerate(pairs):
             cands[i, :, k], scores[i, k] = c, v
     return cands, scores, sizes

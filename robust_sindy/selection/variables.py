@@ -43,6 +43,7 @@ import numpy as np
 import scipy.linalg
 import scipy.sparse
 
+from ..core.threads import map_threads
 from .bias import LibraryNoise
 from .choice import Fitted, huber_method
 from .criteria import MIN_BIC_MARGIN, score_margin
@@ -132,14 +133,19 @@ class RowNoise:
         d = self.factor(xi, k)
         return (d @ d.T).tocsr()
 
+    def prepare(self) -> tuple:
+        """The products of the test functions :meth:`band` reads, formed on the first
+        call (:func:`_band_products`)."""
+        if self._products is None:
+            self._products = _band_products(self.weights, self.slopes)
+        return self._products
+
     def band(self, xi: np.ndarray, k: int) -> np.ndarray:
         """The lower band of :meth:`covariance` (``out[d, j] = C[j + d, j]``, LAPACK's
         banded storage), from products of the test functions formed once:
         ``C = W diag(sum_l g_l^2) W^T + t_k (W diag(g_k) S^T + S diag(g_k) W^T) +
         t_k^2 S S^T``."""
-        if self._products is None:
-            self._products = _band_products(self.weights, self.slopes)
-        ww, ws, ss, at = self._products
+        ww, ws, ss, at = self.prepare()
         q = np.zeros(self.weights.shape[1])
         own = np.zeros_like(q)
         for state, g in enumerate(self.columns.per_state(xi)):
@@ -227,6 +233,38 @@ def gls_score(g, y, support, start, noise: RowNoise, k: int, rounds: int = GLS_R
     return chi2, xi
 
 
+def _added_chi2(gw, yw, support) -> list[tuple[float, int]]:
+    """``(chi-square, j)`` of the least-squares fit of ``yw`` on the columns of ``gw`` in
+    ``support`` and the column ``j``, for every column ``j`` outside it that is not
+    zero: from one factorisation of the support's columns, the residual ``r`` and each
+    candidate's part ``c`` orthogonal to them, ``|r - c (c^T r) / |c|^2|^2`` (the
+    support's directions below the pseudo-inverse's default cut left out, as
+    ``numpy.linalg.lstsq`` does; a candidate whose orthogonal part is below that cut
+    adds nothing)."""
+    rows = gw.shape[0]
+    cand = np.flatnonzero(~support & np.any(gw != 0, axis=0))
+    if not cand.size:
+        return []
+    base = gw[:, support]
+    cut = np.finfo(float).eps * max(rows, base.shape[1] + 1)
+    r, c = yw, gw[:, cand]
+    top = 0.0
+    if base.shape[1]:
+        u, sv, _ = np.linalg.svd(base, full_matrices=False)
+        top = float(sv[0]) if sv.size else 0.0
+        u = u[:, sv > cut * top]
+        r = yw - u @ (u.T @ yw)
+        c = c - u @ (u.T @ c)
+    norm2 = np.einsum("ij,ij->j", c, c)
+    scale = np.maximum(top, np.linalg.norm(gw[:, cand], axis=0))
+    step = np.zeros(cand.size)
+    ok = np.sqrt(norm2) > cut * scale
+    step[ok] = (c[:, ok].T @ r) / norm2[ok]
+    left = r[:, None] - c * step  # each candidate's residual, formed (no cancellation)
+    chi2 = np.einsum("ij,ij->j", left, left)
+    return [(float(v), int(j)) for v, j in zip(chi2, cand, strict=True)]
+
+
 def _stepwise(g, y, key, score, noise: RowNoise, k: int, penalty: float, memo, steps: int = 40):
     """From the support ``key`` (bytes of a bool array) with score ``score``: add or drop
     the one term that lowers the score most, until none does (``steps`` at most).
@@ -252,12 +290,7 @@ def _stepwise(g, y, key, score, noise: RowNoise, k: int, penalty: float, memo, s
         if white is None:
             break
         gw, yw = white(g), white(y)
-        ranked = []
-        for j in np.flatnonzero(~support & np.any(gw != 0, axis=0)):
-            on = np.flatnonzero(support | (np.arange(g.shape[1]) == j))
-            sol = np.linalg.lstsq(gw[:, on], yw, rcond=None)[0]
-            r = yw - gw[:, on] @ sol
-            ranked.append((float(r @ r), int(j)))
+        ranked = _added_chi2(gw, yw, support)
         moves = [j for _, j in sorted(ranked)[:MOVES_SCORED]]
         if support.sum() > 1:
             moves += np.flatnonzero(support).tolist()
@@ -352,8 +385,10 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
     chosen_score = np.full(n, np.nan)
     best_score = np.full(n, np.nan)
     counts = np.zeros(n, dtype=int)
-    scored = []
-    for k in range(n):
+    scored = [None] * n
+    noise.prepare()  # the products the equations share, formed before they run
+
+    def equation(k):  # writes only equation k's entries: the equations run side by side
         starts = {support[:, k].tobytes(): chosen[:, k]}
         for pool in pools:
             for c in pool[:, :, k]:
@@ -389,7 +424,9 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
         fitted = np.array([np.frombuffer(key, dtype=bool) for key in memo])
         chi2 = np.array([chi2 for chi2, _ in memo.values()])
         coefs = np.array([xi for _, xi in memo.values()])
-        scored.append((fitted, chi2 + penalty * fitted.sum(axis=1), coefs))
+        scored[k] = (fitted, chi2 + penalty * fitted.sum(axis=1), coefs)
+
+    map_threads(equation, range(n))
     return Rescored(support, switched, chosen_score, best_score, counts, trusted, scored)
 
 
