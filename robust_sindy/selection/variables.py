@@ -248,6 +248,7 @@ def _added_chi2(gw, yw, support) -> list[tuple[float, int]]:
     base = gw[:, support]
     cut = np.finfo(float).eps * max(rows, base.shape[1] + 1)
     r, c = yw, gw[:, cand]
+    norms = np.linalg.norm(c, axis=0)  # the candidates' own, before the projection
     top = 0.0
     if base.shape[1]:
         u, sv, _ = np.linalg.svd(base, full_matrices=False)
@@ -256,7 +257,7 @@ def _added_chi2(gw, yw, support) -> list[tuple[float, int]]:
         r = yw - u @ (u.T @ yw)
         c = c - u @ (u.T @ c)
     norm2 = np.einsum("ij,ij->j", c, c)
-    scale = np.maximum(top, np.linalg.norm(gw[:, cand], axis=0))
+    scale = np.maximum(top, norms)
     step = np.zeros(cand.size)
     ok = np.sqrt(norm2) > cut * scale
     step[ok] = (c[:, ok].T @ r) / norm2[ok]
