@@ -294,6 +294,29 @@ def test_terms_fitted_to_noise_are_reported_unstable():
     assert model.diagnostics_.unstable.any(axis=1).all()
 
 
+def test_unstable_terms_warn_only_where_no_significance_test_judged_them():
+    # Terms that move when a quarter of the data is left out warn when nothing else
+    # judged them (a given lam: no robust t); where the significance rounds did, they
+    # rest on part of the record, which the report notes (a transient that tells terms
+    # apart, as on a Hopf record: on their own such notes were warnings only on right
+    # answers).
+    import dataclasses
+
+    data = Lorenz().generate(t_end=5.0)
+    d = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
+    assert np.isfinite(d.significance).any(axis=1).all() and not d.unstable.any()
+    unstable = np.zeros_like(d.unstable)
+    unstable[1, np.flatnonzero(np.isfinite(d.significance[1]))[0]] = True
+    judged = dataclasses.replace(d, unstable=unstable)
+    assert "unstable terms" not in [k for k, _ in judged.findings()]
+    (note,) = [m for k, m in judged.notes() if k == "unstable terms"]
+    assert note.startswith("equations [1]: 1 selected terms") and "rest on part" in note
+    untested = dataclasses.replace(judged, significance=np.full_like(d.significance, np.nan))
+    (found,) = [m for k, m in untested.findings() if k == "unstable terms"]
+    assert found.startswith("equations [1]: 1 selected terms") and "no significance" in found
+    assert "unstable terms" not in [k for k, _ in untested.notes()]
+
+
 def test_derivatives_next_to_masked_entries_keep_their_order():
     # The window of a sample is its five nearest usable samples: next to a masked entry
     # the derivative is still a quartic's (errors like the unmasked ones), not a
