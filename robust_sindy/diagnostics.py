@@ -164,8 +164,11 @@ class Diagnostics:
     unstable : ndarray of bool (n, p)
         Selected terms whose coefficient changes sign, or by more than
         ``STABILITY_TOLERANCE`` of its value, when one of ``STABILITY_BLOCKS``
-        contiguous blocks of the kept samples is left out of the refit: the data do not
-        pin them down (a spurious term, or a true one the data barely excite).
+        contiguous blocks of the kept samples is left out of the refit: they rest on part
+        of the record (a spurious term, a true one the rest barely excites, or terms only
+        a transient tells apart).  A note of the report where a significance test judged
+        the terms (``significance`` computed), a warning where none did (a given
+        ``lam``).
     bias_ratio : ndarray (n, p)
         For terms the selection chose but then dropped because their coefficient was
         within ``BIAS_MARGIN`` times the bias that the noise of the states, through the
