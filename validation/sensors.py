@@ -23,7 +23,9 @@ out, the sample times as an array).
 channel counts (``Lorenz96_N`` for any N of at least 4; ``LorenzRing_N``, N Lorenz
 systems on a ring, each driven by the next: 3 N channels), seeds and derivatives;
 ``--families glitches --glitches 100,1000`` some of the families, with glitches of
-another size (in spreads of the state).
+another size (in spreads of the state).  ``sensors.csv`` holds, per fit, the kinds of
+every warning with their counts (``kinds``) and their messages (``warnings``, the first
+300 characters).
 """
 
 from __future__ import annotations
@@ -42,6 +44,7 @@ import scipy.integrate
 from joblib import Parallel, delayed
 
 from robust_sindy import HuberSINDy, PolynomialLibrary, zoo
+from robust_sindy.diagnostics import count_kinds, kind_of
 from robust_sindy.flows import lorenz96, write_rows
 
 SYSTEMS = ("DuffingForced", "Hopf", "Lorenz96_20")
@@ -193,7 +196,7 @@ def run_case(
     rows = []
     for method in ("huber", "stlsq"):
         t0 = time.perf_counter()
-        warned, error = [], ""
+        warned, kinds, error = [], [], ""
         try:
             if method == "huber":
                 model = HuberSINDy(library=PolynomialLibrary(degree=s.degree))
@@ -201,6 +204,7 @@ def run_case(
                     warnings.simplefilter("always")
                     model.fit(noisy, t, x_dot=x_dot, u=u)
                 coef, warned = model.coef_.T, [str(w.message) for w in caught]
+                kinds = [kind_of(w) for w in caught]
             else:
                 coef = _pysindy(s, t, noisy, u, x_dot)
         except Exception as exc:  # a failure counts as a miss, with its reason
@@ -215,7 +219,8 @@ def run_case(
                     float(np.linalg.norm(coef - s.coef) / np.linalg.norm(s.coef))
                     if finite else math.inf
                 ),
-                warned=bool(warned), warnings=" | ".join(sorted(set(warned)))[:300],
+                warned=bool(warned), kinds=count_kinds(kinds),
+                warnings=" | ".join(sorted(set(warned)))[:300],
                 failure=error[:200], seconds=time.perf_counter() - t0,
             )
         )  # fmt: skip
