@@ -639,10 +639,28 @@ def _unstable(d, judged: bool):
     selected terms a significance test judged (their robust t computed: the automatic
     selection, or a search under constraints) when ``judged``, among the others (a
     given ``lam``) otherwise."""
-    tested = np.isfinite(d.significance).any(axis=1) if d.significance.size else np.zeros(0, bool)
-    if tested.shape != (d.unstable.shape[0],):
-        tested = np.zeros(d.unstable.shape[0], dtype=bool)
+    sig = d.significance
+    tested = (
+        np.isfinite(sig).any(axis=1)
+        if sig.shape == d.unstable.shape
+        else np.zeros(d.unstable.shape[0], dtype=bool)
+    )
     return _equations_with(d.unstable & (tested == judged)[:, None])
+
+
+def _unstable_rule(judged: bool, reading: str) -> Rule:
+    """The stability check's rule for the equations whose terms a significance test
+    judged (a note) or did not (a warning): ``reading`` says what it means there."""
+    return Rule(
+        "unstable terms",
+        lambda d: _unstable(d, judged),
+        lambda d, e: (
+            f"equations {e[0].tolist()}: {e[1]} selected terms change sign or by more "
+            f"than {100 * STABILITY_TOLERANCE:.0f} % when a quarter of the data is left "
+            f"out{reading}"
+        ),
+        warns=not judged,
+    )
 
 
 def _pruned_message(d, e) -> str:
@@ -825,34 +843,23 @@ RULES: tuple[Rule, ...] = (
             "library"
         ),
     ),
-    Rule(
-        "unstable terms",
-        lambda d: _unstable(d, judged=False),
-        lambda d, e: (
-            f"equations {e[0].tolist()}: {e[1]} selected terms change sign or by more "
-            f"than {100 * STABILITY_TOLERANCE:.0f} % when a quarter of the data is left "
-            "out, and no significance test judged them: the support is not reliably "
-            "identified from these data (noise too large for the library, or terms the "
-            "trajectory barely excites); see diagnostics_.unstable, and try more data, "
-            "measured derivatives, a smaller library or lam='auto'"
-        ),
+    _unstable_rule(
+        False,
+        ", and no significance test judged them: the support is not reliably identified "
+        "from these data (noise too large for the library, or terms the trajectory barely "
+        "excites); see diagnostics_.unstable, and try more data, measured derivatives, a "
+        "smaller library or lam='auto'",
     ),
-    Rule(
-        "unstable terms",
-        lambda d: _unstable(d, judged=True),
-        lambda d, e: (
-            f"equations {e[0].tolist()}: {e[1]} selected terms change sign or by more "
-            f"than {100 * STABILITY_TOLERANCE:.0f} % when a quarter of the data is left "
-            "out: they rest on part of the record (a transient that tells them apart, "
-            "terms the rest barely excites, or noise too large for the library); see "
-            "diagnostics_.unstable; more data, measured derivatives or a smaller "
-            "library would firm them up"
-        ),
-        # A note where the significance rounds judged the terms: there it fired alone
-        # only on right answers (23: the zoo and held-out zoo, a Hopf transient at 8 %
-        # noise, mean-field records mostly on their limit cycle), and every one of the
-        # 18 wrong answers it fired on had other warnings (see the diagnostics guide).
-        warns=False,
+    # A note where the significance rounds judged the terms: there it fired alone only
+    # on right answers (23: the zoo and held-out zoo, a Hopf transient at 8 % noise,
+    # mean-field records mostly on their limit cycle), and every one of the 18 wrong
+    # answers it fired on had other warnings (see the diagnostics guide).
+    _unstable_rule(
+        True,
+        ": they rest on part of the record (a transient that tells them apart, terms the "
+        "rest barely excites, or noise too large for the library); see "
+        "diagnostics_.unstable; more data, measured derivatives or a smaller library "
+        "would firm them up",
     ),
     _bias_rule(
         "errors-in-variables drops",
