@@ -118,7 +118,7 @@ def test_the_scaling_run_times_and_checks_each_method():
     assert "| 5 (21) | 1500 | clean | " in text and "exact" in text
 
 
-def test_the_sensor_scripts_ring_of_lorenz_systems_has_the_coefficients_of_its_equations():
+def test_the_sensor_scripts_rings_have_the_coefficients_of_their_equations():
     # validation/sensors.py's LorenzRing_N is scored against its coefficients on the
     # degree-2 monomials: they must give the ring's equations (each Lorenz system driven
     # through its first state by the next one's) at any state.
@@ -140,3 +140,16 @@ def test_the_sensor_scripts_ring_of_lorenz_systems_has_the_coefficients_of_its_e
     assert int((system.coef != 0).sum()) == 8 * 3  # three terms in x', three in y', two in z'
     with pytest.raises(ValueError, match="LorenzRing_N needs N of at least 2"):
         sensors._system("LorenzRing_1")
+    # VanDerPolRing_N: detuned Van der Pol oscillators, each pulled by the next one's
+    # position, on the cubic monomials.
+    system = sensors._system("VanDerPolRing_4")
+    v = np.random.default_rng(1).normal(scale=2.0, size=(50, 8))
+    x, y = v[:, 0::2], v[:, 1::2]
+    w = 1.0 + 0.23 * np.arange(4)
+    expected = np.empty_like(v)
+    expected[:, 0::2] = y
+    expected[:, 1::2] = (1 - x**2) * y - w**2 * x + 0.3 * (np.roll(x, -1, axis=1) - x)
+    assert np.allclose(system.library(v) @ system.coef, expected, rtol=1e-12, atol=1e-9)
+    assert int((system.coef != 0).sum()) == 5 * 4  # one term in x', four in y'
+    with pytest.raises(ValueError, match="VanDerPolRing_N needs N of at least 2"):
+        sensors._system("VanDerPolRing_1")

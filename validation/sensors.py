@@ -21,7 +21,8 @@ out, the sample times as an array).
 
 ``--systems Lorenz96_14,Lorenz96_30 --first-seed 5 --derivatives states`` runs other
 channel counts (``Lorenz96_N`` for any N of at least 4; ``LorenzRing_N``, N Lorenz
-systems on a ring, each driven by the next: 3 N channels), seeds and derivatives;
+systems on a ring, each driven by the next: 3 N channels; ``VanDerPolRing_N``, N Van
+der Pol oscillators on a ring in a cubic library: 2 N channels), seeds and derivatives;
 ``--families glitches --glitches 100,1000`` some of the families, with glitches of
 another size (in spreads of the state).  ``sensors.csv`` holds, per fit, the kinds of
 every warning with their counts (``kinds``) and their messages (``warnings``, the first
@@ -97,33 +98,72 @@ def _system(name: str) -> System:
         coef[at[(0, 0, 1)], 1], coef[at[(1, 1, 1)], 1] = -1.0, -1.0
         return System(name, 2, 3, coef, [0.05, 0.0], 0.02, burn=0.0)
     prefix, _, size = name.partition("_")
-    if prefix not in ("Lorenz96", "LorenzRing") or not size.isdigit():
+    if prefix not in ("Lorenz96", "LorenzRing", "VanDerPolRing") or not size.isdigit():
         raise ValueError(
-            f"unknown system {name!r}: DuffingForced, Hopf, Lorenz96_N or LorenzRing_N"
+            f"unknown system {name!r}: DuffingForced, Hopf, Lorenz96_N, LorenzRing_N or "
+            "VanDerPolRing_N"
         )
     if prefix == "LorenzRing":
         return _lorenz_ring(name, int(size))
+    if prefix == "VanDerPolRing":
+        return _van_der_pol_ring(name, int(size))
     zs = lorenz96(int(size))
     return System(name, zs.n_states, 2, zs.coef, zs.ic, zs.dt)
+
+
+def _ring(name: str, size: int, per: int, degree: int, terms) -> tuple[int, np.ndarray]:
+    """States and coefficients (on the monomials up to ``degree``) of ``size`` systems of
+    ``per`` states on a ring: ``terms(first, following, i)`` gives system ``i``'s terms
+    as ``{(equation, monomial): value}``, its states from ``first`` on, the next
+    system's from ``following``; at least two (a ring of one drives itself)."""
+    if size < 2:
+        prefix = name.partition("_")[0]
+        raise ValueError(f"unknown system {name!r}: {prefix}_N needs N of at least 2")
+    n = per * size
+    powers = _powers(n, degree)
+    at = {c: j for j, c in enumerate(powers)}
+    coef = np.zeros((len(powers), n))
+    for i in range(size):
+        for (eq, monomial), value in terms(per * i, per * ((i + 1) % size), i).items():
+            coef[at[monomial], eq] = value
+    return n, coef
 
 
 def _lorenz_ring(name: str, size: int, coupling: float = 0.5) -> System:
     """``size`` Lorenz systems (3 ``size`` states) on a ring, each driven through its
     first state by the next one's: ``x_i' = 10 (y_i - x_i) + c (x_{i+1} - x_i)``,
     ``y_i' = x_i (28 - z_i) - y_i``, ``z_i' = x_i y_i - 8/3 z_i``; at least two."""
-    if size < 2:  # a ring of one drives itself: the coupling cancels
-        raise ValueError(f"unknown system {name!r}: LorenzRing_N needs N of at least 2")
-    n = 3 * size
-    powers = _powers(n, 2)
-    at = {c: j for j, c in enumerate(powers)}
-    coef = np.zeros((len(powers), n))
-    for i in range(size):
-        x, y, z, nxt = 3 * i, 3 * i + 1, 3 * i + 2, 3 * ((i + 1) % size)
-        coef[at[(y,)], x], coef[at[(x,)], x], coef[at[(nxt,)], x] = 10.0, -10.0 - coupling, coupling
-        coef[at[(x,)], y], coef[at[(x, z)], y], coef[at[(y,)], y] = 28.0, -1.0, -1.0
-        coef[at[(x, y)], z], coef[at[(z,)], z] = 1.0, -8.0 / 3.0
+
+    def terms(x, nxt, i):
+        y, z = x + 1, x + 2
+        return {
+            (x, (y,)): 10.0, (x, (x,)): -10.0 - coupling, (x, (nxt,)): coupling,
+            (y, (x,)): 28.0, (y, (x, z)): -1.0, (y, (y,)): -1.0,
+            (z, (x, y)): 1.0, (z, (z,)): -8.0 / 3.0,
+        }  # fmt: skip
+
+    n, coef = _ring(name, size, 3, 2, terms)
     ic = np.ravel([[1.0 + 0.3 * i, 1.0 - 0.2 * i, 20.0 + i] for i in range(size)])
     return System(name, n, 2, coef, ic, 0.01)
+
+
+def _van_der_pol_ring(name: str, size: int, mu: float = 1.0, coupling: float = 0.3) -> System:
+    """``size`` Van der Pol oscillators (2 ``size`` states, a cubic library) of detuned
+    frequencies on a ring, each pulled by the next one's position: ``x_i' = y_i``,
+    ``y_i' = mu (1 - x_i^2) y_i - w_i^2 x_i + c (x_{i+1} - x_i)`` with
+    ``w_i = 1 + 0.23 i`` (no two locked, so the neighbour is not a function of the
+    oscillator's own state); at least two."""
+
+    def terms(x, nxt, i):
+        y, w = x + 1, 1.0 + 0.23 * i
+        return {
+            (x, (y,)): 1.0, (y, (y,)): mu, (y, (x, x, y)): -mu,
+            (y, (x,)): -(w**2) - coupling, (y, (nxt,)): coupling,
+        }  # fmt: skip
+
+    n, coef = _ring(name, size, 2, 3, terms)
+    ic = np.ravel([[2.0 * np.cos(1.3 * i), 2.0 * np.sin(1.3 * i)] for i in range(size)])
+    return System(name, n, 3, coef, ic, 0.05)
 
 
 def _simulate(s: System, t: np.ndarray, seed: int):
