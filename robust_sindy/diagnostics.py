@@ -318,8 +318,10 @@ class Diagnostics:
         terms (below the significance bar, under the noise floor or within their
         errors-in-variables bias): the most that putting one of them back lowers the
         score the rescoring chose the support by, where the states' noise explains the
-        residuals of both supports compared
-        (:func:`~robust_sindy.selection.variables.dropped_evidence`); NaN elsewhere.
+        residuals of both supports compared (the fall in units of the residuals' spread
+        where that exceeds the noise model's, less the extended BIC's penalty for the
+        library's size: :func:`~robust_sindy.selection.variables.dropped_evidence`);
+        NaN elsewhere.
         Above ``KEEP_EVIDENCE`` (10, "very strong" evidence) the data prefer that term,
         which may be real: a warning says so.
     missing_states : ndarray of int (n_states,)

@@ -59,6 +59,7 @@ __all__ = [
     "gls_score",
     "rescore_supports",
     "rescore_weak",
+    "search_penalty",
 ]
 
 _PBTRF, _TBTRS = scipy.linalg.get_lapack_funcs(("pbtrf", "tbtrs"), dtype=np.float64)
@@ -431,32 +432,55 @@ def rescore_supports(g, y, chosen, pools, noise: RowNoise, margin: float) -> Res
     return Rescored(support, switched, chosen_score, best_score, counts, trusted, scored)
 
 
+def search_penalty(rows: int, terms: int, kept: int) -> float:
+    """The extended BIC's penalty (Chen and Chen 2008, Biometrika 95:759) for adding a
+    term to ``kept`` of ``terms`` candidates, beyond the BIC's ``log(rows)``:
+    ``2 gamma log((terms - kept) / (kept + 1))`` (the change in ``2 gamma log`` of the
+    number of supports of that size, never below zero), ``gamma = 1 - log(rows) /
+    (2 log(terms))`` clipped to [0, 1] (their smallest consistent choice where the
+    candidates number ``rows**kappa``): zero while the library is smaller than the root
+    of the rows.  The best of many candidate terms lowers a chi-square by more than
+    the best of a few: without it, a fixed bar on the fall warns more often as the
+    library grows with the channels."""
+    if terms < 2 or rows < 2:
+        return 0.0
+    gamma = min(max(1.0 - np.log(rows) / (2.0 * np.log(terms)), 0.0), 1.0)
+    return 2.0 * gamma * max(np.log(max(terms - kept, 1) / (kept + 1)), 0.0)
+
+
 def dropped_evidence(g, y, before, after, start, noise: RowNoise) -> np.ndarray:
     """Per equation whose support ``after`` (bool, p x n: the model reported) left out
     terms of ``before`` (the support the rescoring chose), the most that putting one of
-    them back lowers the score (:func:`gls_score` plus ``log(rows)`` per term, as in
-    :func:`rescore_supports`), where the states' noise explains the residuals of both
+    them back lowers the score, where the states' noise explains the residuals of both
     supports compared (chi-square at most :data:`NOISE_EXPLAINS` times the rows, as
     :func:`rescore_supports` requires of a replacement: beyond it the residuals hold
     what the noise model leaves out, such as the quadrature's error on nearly
     noise-free states, which a spurious term absorbs); NaN for the other equations.
-    ``start`` (p, n, standardised) starts the fits.  Positive: the score, under the
-    noise the terms carry, prefers that term in the model."""
+
+    The fall is the :func:`gls_score` chi-square's, read in units of the larger
+    support's residuals where their chi-square exceeds the rows (the noise model then
+    understates the residuals' spread, and the fall with it: an F statistic's
+    denominator), less the score's ``log(rows)`` per term (as in
+    :func:`rescore_supports`) and :func:`search_penalty` for the library's candidates
+    (the rescoring's search took the term as the best of all of them).  ``start`` (p,
+    n, standardised) starts the fits.  Positive: the score, under the noise the terms
+    carry, prefers that term in the model."""
     rows = g.shape[0]
     bound = NOISE_EXPLAINS * rows
-    penalty = np.log(max(rows, 2))
+    terms = int(np.count_nonzero(np.any(g != 0, axis=0)))
     out = np.full(y.shape[1], np.nan)
     for k in np.flatnonzero(np.any(before & ~after, axis=0)):
         reported = gls_score(g, y[:, k], after[:, k], start[:, k], noise, k)[0]
         if not reported <= bound:
             continue
+        penalty = np.log(max(rows, 2)) + search_penalty(rows, terms, int(after[:, k].sum()))
         gains = []
         for j in np.flatnonzero(before[:, k] & ~after[:, k]):
             back = after[:, k].copy()
             back[j] = True
             chi2 = gls_score(g, y[:, k], back, start[:, k], noise, k)[0]
             if chi2 <= bound:
-                gains.append(reported - chi2 - penalty)
+                gains.append((reported - chi2) / max(1.0, chi2 / rows) - penalty)
         if gains:
             out[k] = max(gains)
     return out
