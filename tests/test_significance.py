@@ -254,6 +254,42 @@ def test_pruning_drops_the_terms_the_data_do_not_vouch_for(seed):
 
 
 @pytest.mark.parametrize("seed", range(4))
+def test_a_term_under_the_noise_floor_outlives_the_small_terms_that_stand_in_for_it(seed):
+    # A small true term (15 % of the equation, under a floor of 20 %) and six noise
+    # columns that each follow it to a correlation of 0.99: with them in the model its
+    # robust t is 2 to 4.5 (below the bar of 5: dropping every weak term at once would
+    # drop it), alone about 50.  The weakest first drops the stand-ins (t about 1) and
+    # keeps it.
+    from robust_sindy.core.scaling import Standardizer
+    from robust_sindy.selection.final import _floor_drops
+    from robust_sindy.selection.problem import Problem
+    from robust_sindy.selection.refit import debias
+
+    rng = np.random.default_rng(seed)
+    m = 4000
+    a, b, c = rng.normal(size=(3, m))
+    theta = np.column_stack([a, b, c, c[:, None] + 0.15 * rng.normal(size=(m, 6))])
+    y = 3 * a - 2 * b + 0.4 * c + 0.5 * rng.normal(size=m)
+    problem = Problem(theta, y[:, None], Standardizer.from_data(theta, y[:, None]), [slice(0, m)])
+    coef = np.linalg.lstsq(theta, y, rcond=None)[0][:, None]
+    delta = np.array([10.0])  # every residual inside: least squares
+    delta_s = problem.delta_standard(delta)
+
+    def refit(c, cols=None):
+        return debias(problem.theta, problem.y, c, delta, "admm", None, {})
+
+    def t_of(c):
+        return robust_t(problem.theta_s, problem.y_s, problem.scaler.coef_to_standard(c), delta_s)
+
+    assert t_of(coef)[2, 0] < SIGNIFICANCE - 0.5
+    kept, changed = _floor_drops(
+        problem, problem.theta_s, coef.copy(), delta_s, refit, 0.005, 0.2, SIGNIFICANCE
+    )
+    assert changed and np.array_equal(np.flatnonzero(kept[:, 0]), [0, 1, 2])
+    assert t_of(kept)[2, 0] > 5 * SIGNIFICANCE
+
+
+@pytest.mark.parametrize("seed", range(4))
 def test_pruning_leaves_an_equation_without_a_clear_term_as_selected(seed):
     # Every selected term is noise-sized (robust t of a few, far below
     # SIGNIFICANCE_ESTIMATED): the data vouch for no version of the equation, so

@@ -153,3 +153,13 @@ def test_the_sensor_scripts_rings_have_the_coefficients_of_their_equations():
     assert int((system.coef != 0).sum()) == 5 * 4  # one term in x', four in y'
     with pytest.raises(ValueError, match="VanDerPolRing_N needs N of at least 2"):
         sensors._system("VanDerPolRing_1")
+    # RosslerRing_N: Rössler systems, each driven through its x by the next one's.
+    system = sensors._system("RosslerRing_3")
+    v = np.random.default_rng(2).normal(scale=5.0, size=(50, 9))
+    x, y, z = v[:, 0::3], v[:, 1::3], v[:, 2::3]
+    expected = np.empty_like(v)
+    expected[:, 0::3] = -y - z + 0.1 * (np.roll(x, -1, axis=1) - x)
+    expected[:, 1::3] = x + 0.2 * y
+    expected[:, 2::3] = 0.2 + z * (x - 5.7)
+    assert np.allclose(system.library(v) @ system.coef, expected, rtol=1e-12, atol=1e-9)
+    assert int((system.coef != 0).sum()) == 9 * 3  # four terms in x', two in y', three in z'

@@ -22,7 +22,8 @@ out, the sample times as an array).
 ``--systems Lorenz96_14,Lorenz96_30 --first-seed 5 --derivatives states`` runs other
 channel counts (``Lorenz96_N`` for any N of at least 4; ``LorenzRing_N``, N Lorenz
 systems on a ring, each driven by the next: 3 N channels; ``VanDerPolRing_N``, N Van
-der Pol oscillators on a ring in a cubic library: 2 N channels), seeds and derivatives;
+der Pol oscillators on a ring in a cubic library: 2 N channels; ``RosslerRing_N``, N
+Rössler systems on a ring: 3 N channels), seeds and derivatives;
 ``--families glitches --glitches 100,1000`` some of the families, with glitches of
 another size (in spreads of the state).  ``sensors.csv`` holds, per fit, the kinds of
 every warning with their counts (``kinds``) and their messages (``warnings``, the first
@@ -98,13 +99,16 @@ def _system(name: str) -> System:
         coef[at[(0, 0, 1)], 1], coef[at[(1, 1, 1)], 1] = -1.0, -1.0
         return System(name, 2, 3, coef, [0.05, 0.0], 0.02, burn=0.0)
     prefix, _, size = name.partition("_")
-    if prefix not in ("Lorenz96", "LorenzRing", "VanDerPolRing") or not size.isdigit():
+    rings = ("LorenzRing", "VanDerPolRing", "RosslerRing")
+    if prefix not in ("Lorenz96", *rings) or not size.isdigit():
         raise ValueError(
-            f"unknown system {name!r}: DuffingForced, Hopf, Lorenz96_N, LorenzRing_N or "
-            "VanDerPolRing_N"
+            f"unknown system {name!r}: DuffingForced, Hopf, Lorenz96_N, LorenzRing_N, "
+            "VanDerPolRing_N or RosslerRing_N"
         )
     if prefix == "LorenzRing":
         return _lorenz_ring(name, int(size))
+    if prefix == "RosslerRing":
+        return _rossler_ring(name, int(size))
     if prefix == "VanDerPolRing":
         return _van_der_pol_ring(name, int(size))
     zs = lorenz96(int(size))
@@ -164,6 +168,24 @@ def _van_der_pol_ring(name: str, size: int, mu: float = 1.0, coupling: float = 0
     n, coef = _ring(name, size, 2, 3, terms)
     ic = np.ravel([[2.0 * np.cos(1.3 * i), 2.0 * np.sin(1.3 * i)] for i in range(size)])
     return System(name, n, 3, coef, ic, 0.05)
+
+
+def _rossler_ring(name: str, size: int, coupling: float = 0.1) -> System:
+    """``size`` Rössler systems (3 ``size`` states) on a ring, each driven through its
+    first state by the next one's: ``x_i' = -y_i - z_i + c (x_{i+1} - x_i)``,
+    ``y_i' = x_i + 0.2 y_i``, ``z_i' = 0.2 + z_i (x_i - 5.7)``; at least two."""
+
+    def terms(x, nxt, i):
+        y, z = x + 1, x + 2
+        return {
+            (x, (y,)): -1.0, (x, (z,)): -1.0, (x, (x,)): -coupling, (x, (nxt,)): coupling,
+            (y, (x,)): 1.0, (y, (y,)): 0.2,
+            (z, ()): 0.2, (z, (x, z)): 1.0, (z, (z,)): -5.7,
+        }  # fmt: skip
+
+    n, coef = _ring(name, size, 3, 2, terms)
+    ic = np.ravel([[1.0 + 0.5 * i, -1.0 + 0.3 * i, 0.1] for i in range(size)])
+    return System(name, n, 2, coef, ic, 0.06)
 
 
 def _simulate(s: System, t: np.ndarray, seed: int):

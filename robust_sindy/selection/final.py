@@ -5,10 +5,11 @@ refit of the selected support:
 
 * :func:`final_selection` -- drops, refitting after each drop until none drops
   anything: the terms below ``selection_tol``; those below the noise floor whose robust
-  t is below the bar; those within ``BIAS_MARGIN`` times the bias that the noise of the
-  states gives them through the other terms (errors in the variables,
-  :mod:`~robust_sindy.selection.bias`); and, with estimated derivatives, those within
-  ``BIAS_MARGIN`` times the bias that the derivatives' truncation error gives them.
+  t is below the bar, the weakest of each equation first; those within ``BIAS_MARGIN``
+  times the bias that the noise of the states gives them through the other terms
+  (errors in the variables, :mod:`~robust_sindy.selection.bias`); and, with estimated
+  derivatives, those within ``BIAS_MARGIN`` times the bias that the derivatives'
+  truncation error gives them.
 * :func:`prune` -- drops the selected term with the smallest robust t while it is below
   the bar, per equation, in equations with a term that clears
   ``SIGNIFICANCE_ESTIMATED``.
@@ -76,8 +77,18 @@ class _Refit:
         self.args = (kept.theta, kept.y)
         self.delta, self.method, self.solver, self.options = delta, method, solver, options
 
-    def __call__(self, coef):
-        return debias(*self.args, coef, self.delta, self.method, self.solver, self.options)
+    def __call__(self, coef, cols=None):
+        """The refit of every equation, or of the equations ``cols`` (the others kept)."""
+        if cols is None:
+            return debias(*self.args, coef, self.delta, self.method, self.solver, self.options)
+        theta, y = self.args
+        delta = np.broadcast_to(np.asarray(self.delta, dtype=float), (y.shape[1],))
+        out = coef.copy()
+        out[:, cols] = debias(
+            theta, y[:, cols], coef[:, cols], delta[cols], self.method, self.solver,
+            self.options,
+        )  # fmt: skip
+        return out
 
 
 def final_selection(
@@ -117,15 +128,14 @@ def final_selection(
 
 def _drops(kept, th, coef, delta_s, refit, tol, floor_tol, measured, error, bar, method):
     """Drop the terms below ``tol``, and those below ``floor_tol`` whose robust t is below
-    ``bar``, and those within ``BIAS_MARGIN`` of their errors-in-variables bias (with the
-    screen's noise; the signed first-order bias for measured derivatives, its triangle
-    bound for estimated ones), refitting after each, and, with estimated derivatives
+    ``bar`` (``_floor_drops``), and those within ``BIAS_MARGIN`` of their
+    errors-in-variables bias (with the screen's noise; the signed first-order bias for
+    measured derivatives, its triangle bound for estimated ones), refitting after
+    each, and, with estimated derivatives
     whose truncation ``error`` (standardised) was measured, those within ``BIAS_MARGIN``
     of the bias that error gives them, until none drops anything.  Returns the
     coefficients and the bias ratios of the terms the last two dropped (NaN elsewhere)."""
     scaler, yk, noise, segments = kept.scaler, kept.y_s, kept.noise, kept.segments
-    col = np.linalg.norm(th, axis=0)[:, None]
-    ynorm = np.maximum(np.linalg.norm(yk, axis=0), np.finfo(float).tiny)
     gram = None if noise is None else noise_gram(noise)
     ratio = np.full(coef.shape, np.nan)
     truncation = np.full(coef.shape, np.nan)
@@ -148,17 +158,7 @@ def _drops(kept, th, coef, delta_s, refit, tol, floor_tol, measured, error, bar,
 
         drops.append((truncation, dict(gram=None, bias=bias)))
     for _ in range(STAGE_ROUNDS):
-        standard = scaler.coef_to_standard(coef)
-        contrib = np.abs(standard) * col / ynorm
-        small = (coef != 0) & (contrib < floor_tol)
-        if small.any():
-            # Under the noise floor, a term stays only when the data vouch for it.
-            tstat = robust_t(th, yk, standard, delta_s, segments)
-            small &= (contrib < tol) | ~(tstat >= bar)
-        if small.any():
-            coef[small] = 0.0
-            coef = refit(coef)
-        changed = bool(small.any())
+        coef, changed = _floor_drops(kept, th, coef, delta_s, refit, tol, floor_tol, bar)
         if not drops:
             break
         for record, how in drops:
@@ -175,6 +175,43 @@ def _drops(kept, th, coef, delta_s, refit, tol, floor_tol, measured, error, bar,
         if not changed:
             break
     return coef, ratio, truncation
+
+
+def _floor_drops(kept: Problem, th, coef, delta_s, refit, tol, floor_tol, bar):
+    """Under the noise floor ``floor_tol`` a term stays only when the data vouch for it:
+    the terms below ``tol`` are dropped, and of those under the floor whose robust t is
+    below ``bar``, the weakest of each equation, refitting after each round until none
+    is left.  One at a time, because terms that share a direction share its evidence:
+    a true term among small ones that stand in for it (its own powers, its products
+    with slowly varying states) has a low t only while they are in the model.  Returns
+    the coefficients and whether anything was dropped."""
+    scaler, yk, segments = kept.scaler, kept.y_s, kept.segments
+    col = np.linalg.norm(th, axis=0)[:, None]
+    ynorm = np.maximum(np.linalg.norm(yk, axis=0), np.finfo(float).tiny)
+    delta_s = np.broadcast_to(np.asarray(delta_s, dtype=float), (yk.shape[1],))
+    tstat = np.full(coef.shape, np.nan)
+    stale = np.ones(coef.shape[1], dtype=bool)
+    changed = False
+    while True:
+        standard = scaler.coef_to_standard(coef)
+        small = (coef != 0) & (np.abs(standard) * col / ynorm < floor_tol)
+        tiny = small & (np.abs(standard) * col / ynorm < tol)
+        need = stale & small.any(axis=0)
+        if need.any():
+            tstat[:, need] = robust_t(th, yk[:, need], standard[:, need], delta_s[need], segments)
+        stale[:] = False
+        weak = small & ~tiny & ~(tstat >= bar)
+        # NaN (no statistic) counts as the weakest.
+        score = np.where(weak, np.nan_to_num(tstat, nan=-np.inf), np.inf)
+        cols = np.flatnonzero(weak.any(axis=0))
+        drop = tiny.copy()
+        drop[np.argmin(score[:, cols], axis=0), cols] = True
+        if not drop.any():
+            return coef, changed
+        coef[drop] = 0.0
+        stale = drop.any(axis=0)
+        coef = refit(coef, np.flatnonzero(stale))
+        changed = True
 
 
 def prune(kept: Problem, th, coef, delta_s, refit, bar):
