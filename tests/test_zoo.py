@@ -163,3 +163,11 @@ def test_the_sensor_scripts_rings_have_the_coefficients_of_their_equations():
     expected[:, 2::3] = 0.2 + z * (x - 5.7)
     assert np.allclose(system.library(v) @ system.coef, expected, rtol=1e-12, atol=1e-9)
     assert int((system.coef != 0).sum()) == 9 * 3  # four terms in x', two in y', three in z'
+    # LotkaVolterra4: x_i' = r_i x_i (1 - sum_j a_ij x_j).
+    system = sensors._system("LotkaVolterra4")
+    v = np.random.default_rng(3).uniform(0.1, 0.8, size=(50, 4))
+    r = np.array([1.0, 0.72, 1.53, 1.27])
+    a = [[1, 1.09, 1.52, 0], [0, 1, 0.44, 1.36], [2.33, 0, 1, 0.47], [1.21, 0.51, 0.35, 1]]
+    a = np.array(a)
+    expected = r * v * (1 - v @ a.T)
+    assert np.allclose(system.library(v) @ system.coef, expected, rtol=1e-12, atol=1e-12)

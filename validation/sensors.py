@@ -23,7 +23,8 @@ out, the sample times as an array).
 channel counts (``Lorenz96_N`` for any N of at least 4; ``LorenzRing_N``, N Lorenz
 systems on a ring, each driven by the next: 3 N channels; ``VanDerPolRing_N``, N Van
 der Pol oscillators on a ring in a cubic library: 2 N channels; ``RosslerRing_N``, N
-Rössler systems on a ring: 3 N channels), seeds and derivatives;
+Rössler systems on a ring: 3 N channels; ``LotkaVolterra4``, four competing species),
+seeds and derivatives;
 ``--families glitches --glitches 100,1000`` some of the families, with glitches of
 another size (in spreads of the state).  ``sensors.csv`` holds, per fit, the kinds of
 every warning with their counts (``kinds``) and their messages (``warnings``, the first
@@ -98,12 +99,14 @@ def _system(name: str) -> System:
         coef[at[(0,)], 1], coef[at[(1,)], 1] = 1.0, mu
         coef[at[(0, 0, 1)], 1], coef[at[(1, 1, 1)], 1] = -1.0, -1.0
         return System(name, 2, 3, coef, [0.05, 0.0], 0.02, burn=0.0)
+    if name == "LotkaVolterra4":
+        return _lotka_volterra4(name)
     prefix, _, size = name.partition("_")
     rings = ("LorenzRing", "VanDerPolRing", "RosslerRing")
     if prefix not in ("Lorenz96", *rings) or not size.isdigit():
         raise ValueError(
-            f"unknown system {name!r}: DuffingForced, Hopf, Lorenz96_N, LorenzRing_N, "
-            "VanDerPolRing_N or RosslerRing_N"
+            f"unknown system {name!r}: DuffingForced, Hopf, LotkaVolterra4, Lorenz96_N, "
+            "LorenzRing_N, VanDerPolRing_N or RosslerRing_N"
         )
     if prefix == "LorenzRing":
         return _lorenz_ring(name, int(size))
@@ -168,6 +171,26 @@ def _van_der_pol_ring(name: str, size: int, mu: float = 1.0, coupling: float = 0
     n, coef = _ring(name, size, 2, 3, terms)
     ic = np.ravel([[2.0 * np.cos(1.3 * i), 2.0 * np.sin(1.3 * i)] for i in range(size)])
     return System(name, n, 3, coef, ic, 0.05)
+
+
+def _lotka_volterra4(name: str) -> System:
+    """Four competing species, ``x_i' = r_i x_i (1 - sum_j a_ij x_j)``, with the growth
+    rates and competition of Vano et al. (2006, Nonlinearity 19:2391), whose attractor
+    is chaotic: every state stays positive, in a narrow band (a library whose columns
+    ``x_i`` and ``x_i x_j`` are far from independent)."""
+    r = np.array([1.0, 0.72, 1.53, 1.27])
+    a = np.array(
+        [[1.0, 1.09, 1.52, 0.0], [0.0, 1.0, 0.44, 1.36], [2.33, 0.0, 1.0, 0.47],
+         [1.21, 0.51, 0.35, 1.0]]
+    )  # fmt: skip
+    powers = _powers(4, 2)
+    at = {c: j for j, c in enumerate(powers)}
+    coef = np.zeros((len(powers), 4))
+    for i in range(4):
+        coef[at[(i,)], i] = r[i]
+        for j in np.flatnonzero(a[i]):
+            coef[at[tuple(sorted((i, int(j))))], i] -= r[i] * a[i, j]
+    return System(name, 4, 2, coef, [0.3, 0.4, 0.3, 0.2], 0.5)
 
 
 def _rossler_ring(name: str, size: int, coupling: float = 0.1) -> System:
