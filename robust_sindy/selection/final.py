@@ -194,8 +194,9 @@ def _floor_drops(kept: Problem, th, coef, delta_s, refit, tol, floor_tol, bar):
     changed = False
     while True:
         standard = scaler.coef_to_standard(coef)
-        small = (coef != 0) & (np.abs(standard) * col / ynorm < floor_tol)
-        tiny = small & (np.abs(standard) * col / ynorm < tol)
+        contrib = np.abs(standard) * col / ynorm
+        small = (coef != 0) & (contrib < floor_tol)
+        tiny = small & (contrib < tol)
         need = stale & small.any(axis=0)
         if need.any():
             tstat[:, need] = robust_t(th, yk[:, need], standard[:, need], delta_s[need], segments)
