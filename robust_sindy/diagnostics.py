@@ -308,6 +308,12 @@ class Diagnostics:
         The weak form's test functions (0 otherwise).
     formulation_reason : str
         Which formulation was used, and why.
+    formulation_contest : dict
+        Where outliers kept the strong form and the weak form's model selected other
+        terms: the two models' forecasts of the record compared
+        (:func:`robust_sindy.selection.forecast.forecast_contest`): ``horizon``,
+        ``windows``, ``wins`` and ``losses`` (of the weak form's model), ``p_value``,
+        ``equations`` (those whose terms differ) and ``chosen``; empty otherwise.
     errors_in_variables : ndarray of int (n,)
         With the weak form, per equation: 1 where the support was replaced by one that
         scored better under the noise its own terms carry
@@ -374,6 +380,7 @@ class Diagnostics:
     support_half_width: float = float("nan")
     n_rows: int = 0
     formulation_reason: str = ""
+    formulation_contest: dict = field(default_factory=dict)
     errors_in_variables: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     missing_states: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     missing_in_gaps: int = 0

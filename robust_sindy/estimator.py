@@ -9,7 +9,11 @@ function in the module that owns the decision (see :doc:`/guide/index`):
 3. :func:`~robust_sindy.timeseries.temporal.temporal_screen` -- entries inconsistent
    with their neighbours in time, and the missing ones filled from theirs; then the
    library, fitted to the states' and controls' names;
-4. :func:`~robust_sindy.timeseries.derivatives.derivatives` -- the targets;
+4. :meth:`HuberSINDy._weak_rows` -- the formulation, and
+   :func:`~robust_sindy.timeseries.derivatives.derivatives` -- the targets (the
+   stages from here on run again for the weak form where outliers alone kept the
+   strong form, and :func:`~robust_sindy.selection.forecast.forecast_contest` decides
+   between the two models where they differ);
 5. :class:`~robust_sindy.selection.problem.Problem` -- standardised columns;
 6. :func:`~robust_sindy.selection.rows.screen_samples` -- samples with gross residuals;
 7. :func:`~robust_sindy.selection.choice.noise_floor` -- aliased terms, the noise floor;
@@ -67,6 +71,7 @@ from .selection.constrained import (
 )
 from .selection.criteria import CRITERIA
 from .selection.final import FinalSelection, final_selection, significance_bar
+from .selection.forecast import FORECAST_EVIDENCE, forecast_contest
 from .selection.problem import Problem
 from .selection.rows import RowScreen, screen_samples
 from .selection.stability import boundedness, quadratic_parts
@@ -183,6 +188,21 @@ class Identification:
     weak: WeakRows | None = None
     covered: np.ndarray | None = None
     constrained: ConstrainedRefit | None = None
+
+
+@dataclass(frozen=True)
+class _Prepared:
+    """What the stages before the formulation's choice give every formulation fitted."""
+
+    data: Trajectories
+    library: BaseLibrary
+    missing: Missing
+    temporal: TemporalScreening | None
+    z: np.ndarray
+    theta: np.ndarray
+    outlying: np.ndarray
+    flags: np.ndarray
+    stages: _Stages
 
 
 class HuberSINDy(BaseEstimator):
@@ -442,9 +462,29 @@ class HuberSINDy(BaseEstimator):
             outlying = temporal.flags & ~missing.states
         flags = outlying | missing.suspect
         stages.start("formulation and derivatives")
-        weak, why = (
-            self._weak_rows(data, temporal, library, z, missing) if allow_weak else (None, "")
+        weak, why, contested = (
+            self._weak_rows(data, temporal, library, z, missing) if allow_weak else (None, "", "")
         )
+        prep = _Prepared(data, library, missing, temporal, z, theta, outlying, flags, stages)
+        found = self._regress(prep, weak, why)
+        if contested:
+            # Outliers kept the strong form: the weak form's model is the challenger.
+            rival, rival_why, _ = self._weak_rows(
+                data, temporal, library, z, missing, outliers_decide=False
+            )
+            if rival is not None:
+                rival = self._regress(prep, rival, rival_why)
+                found = self._contest(prep, found, rival, contested)
+        stages.close()
+        return found
+
+    def _regress(self, prep: _Prepared, weak: WeakRows | None, why: str) -> Identification:
+        """The stages after the formulation's choice: the targets, the row screen,
+        delta, lambda and the support, the final selection and the diagnostics."""
+        data, library, missing, temporal = prep.data, prep.library, prep.missing, prep.temporal
+        z, outlying, flags, stages = prep.z, prep.outlying, prep.flags, prep.stages
+        theta = prep.theta
+        names = data.feature_names()
         alternative, guard, clean = None, theta, theta
         if weak is None and outlying.any():
             # A glitch need not cost its sample: the row of its repaired readings is the
@@ -506,6 +546,7 @@ class HuberSINDy(BaseEstimator):
         )  # fmt: skip
         swapped = None if rows.screening is None else rows.screening.swapped
         if swapped is not None and swapped.any():
+            theta = theta.copy()  # the library of the records, shared with a rival fit
             theta[swapped] = alternative[1][np.isin(alternative[0], np.flatnonzero(swapped))]
             problem = Problem(theta, deriv.y, scaler, segments, noise)
         if absent.any():
@@ -582,31 +623,83 @@ class HuberSINDy(BaseEstimator):
             rescored=rescored, dropped=dropped,
             bounded=_boundedness(library, final.coef, data.n_states),
         )  # fmt: skip
-        stages.close()
         return Identification(
             data, library, theta, temporal, deriv, problem, rows, floor, choice, fitted, final,
             report, weak, covered, refit,
         )  # fmt: skip
 
+    def _contest(
+        self, prep: _Prepared, strong: Identification, weak: Identification, outliers: str
+    ) -> Identification:
+        """The strong form kept for the outliers alone, and the weak form's model: where
+        they select other terms, the weak form's is taken if it forecasts the record
+        better in significantly more windows (:func:`forecast_contest`, windows as wide
+        as the weak form's test functions); the reason says which and why (``outliers``:
+        what kept the strong form)."""
+        data, reason = prep.data, strong.diagnostics.formulation_reason
+        a, b = strong.final.coef, weak.final.coef
+        if np.array_equal(a != 0, b != 0):
+            text = f"{reason}; the weak form selects the same terms"
+            return replace(strong, diagnostics=replace(strong.diagnostics, formulation_reason=text))
+        n = data.n_states
+        names = data.feature_names()[:n]
+        differ = ", ".join(
+            f"{names[k]}'" for k in range(n) if not np.array_equal(a[:, k] != 0, b[:, k] != 0)
+        )
+        step = max(float(np.median(np.diff(t))) for t in data.t)
+        horizon = max(2, round(2 * weak.diagnostics.support_half_width / step))
+        readings = np.where(prep.outlying, np.nan, np.vstack(data.x))  # NaN where missing
+        states = prep.z[:, :n] if prep.temporal is None else prep.temporal.repaired
+        contest = forecast_contest(
+            prep.library.transform, a, b, states, readings, np.concatenate(data.t),
+            data.segments, horizon, inputs=prep.z[:, n:] if data.n_controls else None,
+        )  # fmt: skip
+        tally = (
+            f"closer to the readings in {contest.wins} of {contest.wins + contest.losses} "
+            f"windows of {contest.horizon} samples (sign test p = {contest.p_value:.2g}"
+        )
+        record = dict(contest.as_dict(), equations=differ)
+        if contest.challenger_better:
+            shares = weak.diagnostics.formulation_reason.split("; ", 1)[-1]
+            text = (
+                f"weak form: {outliers}, below {100 * WEAK_WITH_OUTLIERS_NOISE:.2g} %, which "
+                f"keeps the strong form, but the weak form's model selects other terms in "
+                f"{differ} and forecasts the record better: {tally}, at most "
+                f"{FORECAST_EVIDENCE:g}); {shares}"
+            )
+            found, record["chosen"] = weak, "weak"
+        else:
+            text = (
+                f"{reason}; the weak form's model selects other terms in {differ} but does "
+                f"not forecast the record better ({tally}, above {FORECAST_EVIDENCE:g}))"
+            )
+            found, record["chosen"] = strong, "strong"
+        report = replace(found.diagnostics, formulation_reason=text, formulation_contest=record)
+        return replace(found, diagnostics=report)
+
     def _weak_rows(
-        self, data: Trajectories, temporal, library, z, missing: Missing
-    ) -> tuple[WeakRows | None, str]:
+        self, data: Trajectories, temporal, library, z, missing: Missing, outliers_decide=True
+    ) -> tuple[WeakRows | None, str, str]:
         """The weak form of the records, when ``formulation`` asks for it (``"auto"``:
         states only, and no more entries flagged by the temporal screen than Gaussian
         noise gives, :func:`noise_flag_bound`, or states whose noise is at least
         :data:`WEAK_WITH_OUTLIERS_NOISE` of their spread; and more independent rows than
         :data:`MIN_INDEPENDENT_ROWS_PER_TERM` per term), and why: the repaired
         states (the raw ones without the screen) integrated against test functions whose
-        width the screen's noise levels set."""
+        width the screen's noise levels set.  The third value, where the strong form was
+        kept for the outliers alone (below that noise), says what the screen found: the
+        weak form's rows are then built again with ``outliers_decide=False``, as the
+        challenger of :meth:`_contest`."""
         if self.formulation == "strong":
-            return None, "strong form (formulation='strong')"
+            return None, "strong form (formulation='strong')", ""
         if self.formulation == "auto" and data.x_dot is not None:
-            return None, "strong form: the derivatives were measured (formulation='auto')"
+            why = "strong form: the derivatives were measured (formulation='auto')"
+            return None, why, ""
         # Without the screen, ``temporal`` only filled the missing readings: the choice
         # and the width are the screen's all the same.
         screen = temporal if self.screen else temporal_screen(data.x, data.t)
         outliers = ""
-        if self.formulation == "auto":
+        if self.formulation == "auto" and outliers_decide:
             # Missing readings are not outliers: the count is of the readings.
             readings = int((~missing.states).sum())
             flagged = int((screen.flags & ~missing.states).sum())
@@ -621,11 +714,12 @@ class HuberSINDy(BaseEstimator):
                 )
                 bar = f"{100 * WEAK_WITH_OUTLIERS_NOISE:.2g} %"
                 if not noise >= WEAK_WITH_OUTLIERS_NOISE:
-                    return None, (
+                    kept = (
                         f"strong form: {found}, below {bar}: outliers cost single samples in "
                         "the strong form, where the weak form's integrals would rest on their "
                         "repairs (formulation='auto')"
                     )
+                    return None, kept, found
                 outliers = (
                     f"weak form: {found}, at least {bar}: "
                     "derivatives of states this noisy cost the strong form more than the "
@@ -648,28 +742,30 @@ class HuberSINDy(BaseEstimator):
                     f"{MIN_ROWS_PER_TERM * terms + 1} are needed): the records are too "
                     "short for it; use formulation='strong' or a smaller library"
                 )
-            return None, (
+            few = (
                 f"strong form: the weak form would have {rows.n_rows} test functions for "
                 f"{terms} terms (formulation='auto')"
             )
+            return None, few, ""
         independent = rows.effective_rows()
         shares = (
             f"test functions of half width {support.samples:.0f} samples, about "
             f"{independent:.0f} independent rows for {terms} terms"
         )
         if self.formulation == "auto" and independent <= MIN_INDEPENDENT_ROWS_PER_TERM * terms:
-            return None, (
+            few = (
                 f"strong form: the weak form's {rows.n_rows} {shares}: overlapping test "
                 "functions share their samples' noise, and no more independent rows than "
                 "terms leave the fits on every term underdetermined (formulation='auto')"
             )
+            return None, few, ""
         if self.formulation == "weak":
             why = "weak form (formulation='weak')"
         else:
             why = (
                 outliers or "weak form: states only, no outliers found by the temporal screen"
             ) + f"; {shares}, the width from the states' noise (formulation='auto')"
-        return rows, why
+        return rows, why, ""
 
     def _set_fitted(self, found: Identification) -> None:
         """The fitted attributes, from the stages' outcomes (the only place they are set)."""

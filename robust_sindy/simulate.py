@@ -18,7 +18,7 @@ import scipy.integrate
 
 from .core.validation import as_float_array, check_time
 
-__all__ = ["input_function", "integrate", "rk4", "simulation_inputs"]
+__all__ = ["input_function", "integrate", "rk4", "rk4_batch", "simulation_inputs"]
 
 
 def input_function(u, t: np.ndarray, name: str = "u") -> Callable[[float], np.ndarray] | None:
@@ -89,6 +89,61 @@ def rk4(
             x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
             s = s + h
         out[k + 1] = x
+    return out
+
+
+def rk4_batch(rhs: Callable, x0, t, u=None, *, substeps: int = 1) -> np.ndarray:
+    """Integrate ``x' = rhs(x, u)`` by classical RK4 from many starts at once.
+
+    Each start ``i`` has its own grid ``t[i]`` (irregular sampling) and inputs
+    ``u[i]``, interpolated linearly inside each interval.  Nothing is checked for
+    divergence: a start whose solution overflows carries inf or NaN from then on (the
+    caller reads them as a forecast that failed).
+
+    Parameters
+    ----------
+    rhs : callable
+        ``rhs(x, u)`` with ``x`` of shape (k, n) and ``u`` of shape (k, q) or ``None``,
+        returning (k, n).
+    x0 : ndarray, shape (k, n)
+    t : ndarray, shape (k, s)
+        Increasing output times of each start (columns: the steps).
+    u : ndarray (k, s, q), optional
+        Inputs at the output times.
+    substeps : int
+        RK4 steps per output interval.
+
+    Returns
+    -------
+    ndarray, shape (k, s, n)
+
+    Examples
+    --------
+    >>> t = np.array([[0.0, 0.5, 1.0], [1.0, 1.2, 1.5]])
+    >>> x = rk4_batch(lambda x, u: -x, np.ones((2, 1)), t, substeps=20)
+    >>> bool(np.allclose(x[:, -1, 0], np.exp(-np.array([1.0, 0.5]))))
+    True
+    """
+    x = np.array(x0, dtype=float)
+    t = np.asarray(t, dtype=float)
+    out = np.empty((x.shape[0], t.shape[1], x.shape[1]))
+    out[:, 0] = x
+
+    def inputs(j, a):
+        return None if u is None else (1.0 - a) * u[:, j - 1] + a * u[:, j]
+
+    with np.errstate(all="ignore"):
+        for j in range(1, t.shape[1]):
+            h = ((t[:, j] - t[:, j - 1]) / substeps)[:, None]
+            for s in range(substeps):
+                a0, a1 = s / substeps, (s + 1) / substeps
+                um = inputs(j, (a0 + a1) / 2)
+                k1 = rhs(x, inputs(j, a0))
+                k2 = rhs(x + h / 2 * k1, um)
+                k3 = rhs(x + h / 2 * k2, um)
+                k4 = rhs(x + h * k3, inputs(j, a1))
+                x = x + h / 6 * (k1 + 2 * k2 + 2 * k3 + k4)
+            out[:, j] = x
     return out
 
 
