@@ -467,8 +467,13 @@ class HuberSINDy(BaseEstimator):
         )
         prep = _Prepared(data, library, missing, temporal, z, theta, outlying, flags, stages)
         found = self._regress(prep, weak, why)
-        if contested:
-            # Outliers kept the strong form: the weak form's model is the challenger.
+        if contested and not found.diagnostics.findings():
+            text = f"{why}; its model raised no warning: the weak form was not consulted"
+            found = replace(found, diagnostics=replace(found.diagnostics, formulation_reason=text))
+        elif contested:
+            # Outliers kept the strong form, whose model warns: the weak form's model is
+            # the challenger (a second opinion costs a second identification, so it is
+            # asked for where the first one has doubts).
             rival, rival_why, _ = self._weak_rows(
                 data, temporal, library, z, missing, outliers_decide=False
             )
@@ -631,11 +636,11 @@ class HuberSINDy(BaseEstimator):
     def _contest(
         self, prep: _Prepared, strong: Identification, weak: Identification, outliers: str
     ) -> Identification:
-        """The strong form kept for the outliers alone, and the weak form's model: where
-        they select other terms, the weak form's is taken if it forecasts the record
-        better in significantly more windows (:func:`forecast_contest`, windows as wide
-        as the weak form's test functions); the reason says which and why (``outliers``:
-        what kept the strong form)."""
+        """The strong form kept for the outliers alone, its model warning, and the weak
+        form's model: where they select other terms, the weak form's is taken if it
+        forecasts the record better in significantly more windows
+        (:func:`forecast_contest`, windows as wide as the weak form's test functions);
+        the reason says which and why (``outliers``: what kept the strong form)."""
         data, reason = prep.data, strong.diagnostics.formulation_reason
         a, b = strong.final.coef, weak.final.coef
         if np.array_equal(a != 0, b != 0):

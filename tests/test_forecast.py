@@ -157,3 +157,24 @@ def test_outliers_keep_the_strong_form_unless_the_weak_forms_model_forecasts_bet
     assert contest["p_value"] < FORECAST_EVIDENCE / 1e3
     assert "forecasts the record better" in model.diagnostics_.formulation_reason
     assert np.array_equal(model.coef_.T != 0, system.coef != 0)
+
+
+@pytest.mark.parametrize("seed", range(2))
+def test_a_strong_form_model_without_warnings_is_not_challenged(seed):
+    # Lorenz at 0.2 % noise with 1 % of the entries spiked: outliers keep the strong
+    # form, whose model is right and raises no warning; the weak form is not fitted
+    # (a second identification is asked for only where the first has doubts).
+    data = LORENZ.generate(t_end=10.0, dt=0.01)
+    rng = np.random.default_rng(seed)
+    rms = np.sqrt(np.mean(data.x**2, axis=0))
+    hit = rng.random(data.x.shape) < 0.01
+    x = data.x + 0.002 * rms * rng.normal(size=data.x.shape)
+    x = x + np.where(hit, 3.0 * data.x.std(axis=0), 0.0)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        model = rs.HuberSINDy().fit(x, data.t)
+    assert not [w for w in caught if issubclass(w.category, rs.IdentificationWarning)]
+    assert model.diagnostics_.formulation == "strong" and model.weak_ is None
+    assert model.diagnostics_.formulation_contest == {}
+    assert "the weak form was not consulted" in model.diagnostics_.formulation_reason
+    assert np.array_equal(model.coef_.T != 0, TRUE != 0)
