@@ -12,8 +12,9 @@ function in the module that owns the decision (see :doc:`/guide/index`):
 4. :meth:`HuberSINDy._weak_rows` -- the formulation, and
    :func:`~robust_sindy.timeseries.derivatives.derivatives` -- the targets (the
    stages from here on run again for the weak form where outliers alone kept the
-   strong form, and :func:`~robust_sindy.selection.forecast.forecast_contest` decides
-   between the two models where they differ);
+   strong form and its model warns, and
+   :func:`~robust_sindy.selection.forecast.forecast_contest` decides between the two
+   models where they differ);
 5. :class:`~robust_sindy.selection.problem.Problem` -- standardised columns;
 6. :func:`~robust_sindy.selection.rows.screen_samples` -- samples with gross residuals;
 7. :func:`~robust_sindy.selection.choice.noise_floor` -- aliased terms, the noise floor;

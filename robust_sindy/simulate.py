@@ -92,7 +92,7 @@ def rk4(
     return out
 
 
-def rk4_batch(rhs: Callable, x0, t, u=None, *, substeps: int = 1) -> np.ndarray:
+def rk4_batch(rhs: Callable, x0, t, u=None, *, substeps=1) -> np.ndarray:
     """Integrate ``x' = rhs(x, u)`` by classical RK4 from many starts at once.
 
     Each start ``i`` has its own grid ``t[i]`` (irregular sampling) and inputs
@@ -110,8 +110,9 @@ def rk4_batch(rhs: Callable, x0, t, u=None, *, substeps: int = 1) -> np.ndarray:
         Increasing output times of each start (columns: the steps).
     u : ndarray (k, s, q), optional
         Inputs at the output times.
-    substeps : int
-        RK4 steps per output interval.
+    substeps : int or sequence of int (s - 1,)
+        RK4 steps per output interval (one number for every interval, or one per
+        column of intervals).
 
     Returns
     -------
@@ -132,11 +133,13 @@ def rk4_batch(rhs: Callable, x0, t, u=None, *, substeps: int = 1) -> np.ndarray:
     def inputs(j, a):
         return None if u is None else (1.0 - a) * u[:, j - 1] + a * u[:, j]
 
+    counts = np.broadcast_to(np.asarray(substeps, dtype=int), (t.shape[1] - 1,))
     with np.errstate(all="ignore"):
         for j in range(1, t.shape[1]):
-            h = ((t[:, j] - t[:, j - 1]) / substeps)[:, None]
-            for s in range(substeps):
-                a0, a1 = s / substeps, (s + 1) / substeps
+            steps = int(counts[j - 1])
+            h = ((t[:, j] - t[:, j - 1]) / steps)[:, None]
+            for s in range(steps):
+                a0, a1 = s / steps, (s + 1) / steps
                 um = inputs(j, (a0 + a1) / 2)
                 k1 = rhs(x, inputs(j, a0))
                 k2 = rhs(x + h / 2 * k1, um)

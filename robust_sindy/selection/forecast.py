@@ -40,7 +40,7 @@ __all__ = [
 FORECAST_EVIDENCE = 1e-3
 #: A forecast farther than this many spreads from a state's range has diverged.
 DIVERGED = 1e3
-#: RK4 steps per median sampling interval (more across a longer interval).
+#: RK4 steps per median sampling interval (more across a longer one: a gap).
 _SUBSTEPS = 2
 
 
@@ -181,7 +181,9 @@ def window_errors(features, models, states, readings, t, segments, horizon, inpu
     times = t[at]
     steps = np.diff(times, axis=1)
     typical = float(np.median(steps))
-    substeps = _SUBSTEPS * max(1, int(np.ceil(steps.max() / typical))) if typical > 0 else 1
+    # Per column of intervals, enough steps for its longest interval (a gap).
+    longest = steps.max(axis=0) / typical if typical > 0 else np.ones(horizon)
+    substeps = _SUBSTEPS * np.maximum(1, np.ceil(longest)).astype(int)
     u = None if inputs is None else inputs[at]
     seen = readings[at[:, 1:]] / spread
     valid = np.isfinite(seen)
