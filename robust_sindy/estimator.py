@@ -151,6 +151,8 @@ class _Stages:
     fit of many states spends minutes in its row screen before the path's own bar)."""
 
     COUNT = 6
+    #: Stages of :meth:`HuberSINDy._regress` (run again for a second formulation).
+    REGRESSION = 4
 
     def __init__(self, progress: bool):
         from tqdm import tqdm
@@ -163,6 +165,11 @@ class _Stages:
             self.bar.update()
         self.started = True
         self.bar.set_postfix_str(name)
+
+    def add(self, count: int) -> None:
+        """``count`` more stages (a second formulation's)."""
+        self.bar.total += count
+        self.bar.refresh()
 
     def close(self) -> None:
         self.bar.update()
@@ -479,6 +486,7 @@ class HuberSINDy(BaseEstimator):
                 data, temporal, library, z, missing, outliers_decide=False
             )
             if rival is not None:
+                stages.add(_Stages.REGRESSION)
                 rival = self._regress(prep, rival, rival_why)
                 found = self._contest(prep, found, rival, contested)
         stages.close()
