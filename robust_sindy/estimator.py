@@ -31,7 +31,7 @@ from __future__ import annotations
 
 import contextlib
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import asdict, dataclass, replace
 from numbers import Integral, Real
 
 import numpy as np
@@ -672,7 +672,7 @@ class HuberSINDy(BaseEstimator):
             f"closer to the readings in {contest.wins} of {contest.wins + contest.losses} "
             f"windows of {contest.horizon} samples (sign test p = {contest.p_value:.2g}"
         )
-        record = dict(contest.as_dict(), equations=differ)
+        record = dict(asdict(contest), equations=differ)
         if contest.challenger_better:
             shares = weak.diagnostics.formulation_reason.split("; ", 1)[-1]
             text = (

@@ -27,13 +27,7 @@ import scipy.stats
 
 from ..simulate import rk4_batch
 
-__all__ = [
-    "DIVERGED",
-    "FORECAST_EVIDENCE",
-    "ForecastContest",
-    "forecast_contest",
-    "window_errors",
-]
+__all__ = ["DIVERGED", "FORECAST_EVIDENCE", "ForecastContest", "forecast_contest"]
 
 #: The sign test's level: the challenger is taken only where its forecasts are closer
 #: in more windows than chance gives with at most this probability.
@@ -73,15 +67,6 @@ class ForecastContest:
         :data:`FORECAST_EVIDENCE`)."""
         return bool(self.p_value <= FORECAST_EVIDENCE)
 
-    def as_dict(self) -> dict:
-        return {
-            "horizon": int(self.horizon),
-            "windows": int(self.windows),
-            "wins": int(self.wins),
-            "losses": int(self.losses),
-            "p_value": float(self.p_value),
-        }
-
 
 def _starts(segments: list[slice], horizon: int) -> np.ndarray:
     """The first sample of every whole window of ``horizon + 1`` samples, windows
@@ -90,7 +75,7 @@ def _starts(segments: list[slice], horizon: int) -> np.ndarray:
     return np.concatenate(out) if out else np.zeros(0, dtype=int)
 
 
-def _evaluator(features: Callable, coef: np.ndarray, lo, hi, n: int):
+def _evaluator(features: Callable, coef: np.ndarray, lo, hi):
     """``rhs(x, u)`` of the model ``features(z) @ coef`` for a batch: NaN for the rows
     that diverged (non-finite, or beyond ``lo``/``hi``) or where ``features`` refuses
     them (a library function outside its domain), row by row when one row is refused."""
@@ -110,7 +95,8 @@ def _evaluator(features: Callable, coef: np.ndarray, lo, hi, n: int):
         done = one(z)
         if done is None:
             rows = [one(z[i : i + 1]) for i in range(z.shape[0])]
-            done = np.vstack([np.full((1, n), np.nan) if r is None else r for r in rows])
+            nan = np.full((1, coef.shape[1]), np.nan)
+            done = np.vstack([nan if r is None else r for r in rows])
         out[live] = done
         return out
 
@@ -152,7 +138,7 @@ def forecast_contest(
         Controls at the samples.
     """
     horizon = max(int(horizon), 1)
-    old, new = window_errors(
+    old, new = _window_errors(
         features, (incumbent, challenger), states, readings, t, segments, horizon, inputs
     )
     wins = int(np.sum(new < old))
@@ -165,18 +151,17 @@ def forecast_contest(
     return ForecastContest(horizon, int(old.size), wins, losses, p)
 
 
-def window_errors(features, models, states, readings, t, segments, horizon, inputs=None):
+def _window_errors(features, models, states, readings, t, segments, horizon, inputs):
     """Per model (coefficients (p, n)), the mean absolute error of its forecasts in
     each window (inf where the forecast failed); the arguments are
     :func:`forecast_contest`'s."""
     starts = _starts(segments, horizon)
-    n = states.shape[1]
+    if starts.size == 0:
+        return [np.zeros(0) for _ in models]
     spread = np.std(states, axis=0)
     spread = np.where(spread > 0, spread, 1.0)
     lo = states.min(axis=0) - DIVERGED * spread
     hi = states.max(axis=0) + DIVERGED * spread
-    if starts.size == 0:
-        return [np.zeros(0) for _ in models]
     at = starts[:, None] + np.arange(horizon + 1)
     times = t[at]
     steps = np.diff(times, axis=1)
@@ -189,11 +174,10 @@ def window_errors(features, models, states, readings, t, segments, horizon, inpu
     valid = np.isfinite(seen)
     errors = []
     for coef in models:
-        rhs = _evaluator(features, coef, lo, hi, n)
+        rhs = _evaluator(features, coef, lo, hi)
         path = rk4_batch(rhs, states[starts], times, u, substeps=substeps)[:, 1:] / spread
-        gap = np.where(valid, np.abs(path - np.where(valid, seen, 0.0)), 0.0)
+        gap = np.where(valid, np.abs(path - seen), 0.0)
         failed = ~np.all(np.isfinite(path) | ~valid, axis=(1, 2))
-        with np.errstate(invalid="ignore"):
-            err = gap.sum(axis=(1, 2)) / np.maximum(valid.sum(axis=(1, 2)), 1)
+        err = gap.sum(axis=(1, 2)) / np.maximum(valid.sum(axis=(1, 2)), 1)
         errors.append(np.where(failed, np.inf, err))
     return errors
