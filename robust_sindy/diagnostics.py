@@ -28,6 +28,7 @@ from .selection.bias import (
     state_noise_factors,
 )
 from .selection.criteria import MIN_BIC_MARGIN, blocked_folds
+from .selection.forecast import FORECAST_EVIDENCE, FORECAST_LEANING
 from .selection.lam_path import pilot_budget
 from .selection.refit import one_step_contributions
 from .selection.significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, VISIBLE, robust_t
@@ -901,6 +902,23 @@ RULES: tuple[Rule, ...] = (
         warns=False,
     ),
     Rule("weak terms", lambda d: _equations_with(d.weak), _weak_message),
+    Rule(
+        "formulations disagree",
+        lambda d: (
+            d.formulation_contest
+            if d.formulation_contest.get("chosen") == "strong"
+            and d.formulation_contest["p_value"] <= FORECAST_LEANING
+            else None
+        ),
+        lambda d, c: (
+            f"the weak form's model selects other terms in {c['equations']} and forecasts "
+            f"the record better in {c['wins']} of {c['wins'] + c['losses']} windows (sign "
+            f"test p = {c['p_value']:.2g}): short of the {FORECAST_EVIDENCE:g} that would "
+            "take it, but the record does not confirm the strong form's terms either "
+            "(see diagnostics_.formulation_contest); fit formulation='weak' to see the "
+            "other model, and try more data or less noisy states"
+        ),
+    ),
     Rule(
         "drops the score contests",
         _contested,

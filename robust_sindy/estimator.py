@@ -12,7 +12,7 @@ function in the module that owns the decision (see :doc:`/guide/index`):
 4. :meth:`HuberSINDy._weak_rows` -- the formulation, and
    :func:`~robust_sindy.timeseries.derivatives.derivatives` -- the targets (the
    stages from here on run again for the weak form where outliers alone kept the
-   strong form and its model warns, and
+   strong form, and
    :func:`~robust_sindy.selection.forecast.forecast_contest` decides between the two
    models where they differ);
 5. :class:`~robust_sindy.selection.problem.Problem` -- standardised columns;
@@ -475,13 +475,10 @@ class HuberSINDy(BaseEstimator):
         )
         prep = _Prepared(data, library, missing, temporal, z, theta, outlying, flags, stages)
         found = self._regress(prep, weak, why)
-        if contested and not found.diagnostics.findings():
-            text = f"{why}; its model raised no warning: the weak form was not consulted"
-            found = replace(found, diagnostics=replace(found.diagnostics, formulation_reason=text))
-        elif contested:
-            # Outliers kept the strong form, whose model warns: the weak form's model is
-            # the challenger (a second opinion costs a second identification, so it is
-            # asked for where the first one has doubts).
+        if contested:
+            # Outliers kept the strong form: the weak form's model is the challenger.
+            # Asked only where the strong form's model warns, it left wrong models
+            # without a warning that the weak form's would have put right.
             rival, rival_why, _ = self._weak_rows(
                 data, temporal, library, z, missing, outliers_decide=False
             )
@@ -645,11 +642,12 @@ class HuberSINDy(BaseEstimator):
     def _contest(
         self, prep: _Prepared, strong: Identification, weak: Identification, outliers: str
     ) -> Identification:
-        """The strong form kept for the outliers alone, its model warning, and the weak
-        form's model: where they select other terms, the weak form's is taken if it
-        forecasts the record better in significantly more windows
-        (:func:`forecast_contest`, windows as wide as the weak form's test functions);
-        the reason says which and why (``outliers``: what kept the strong form)."""
+        """The strong form kept for the outliers alone, and the weak form's model: where
+        they select other terms, the weak form's is taken if it forecasts the record
+        better in significantly more windows (:func:`forecast_contest`, windows as wide
+        as the weak form's test functions; where the windows only lean towards it, the
+        diagnostics warn); the reason says which and why (``outliers``: what kept the
+        strong form)."""
         data, reason = prep.data, strong.diagnostics.formulation_reason
         a, b = strong.final.coef, weak.final.coef
         if np.array_equal(a != 0, b != 0):

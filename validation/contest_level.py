@@ -89,6 +89,7 @@ def table(rows) -> str:
     lines = [
         f"{len(rows)} records, {sum(r['exact'] for r in rows)} exact, "
         f"{sum(not r['exact'] and not r['warned'] for r in rows)} wrong without a warning, "
+        f"{sum(r['exact'] and r['warned'] for r in rows)} right with one, "
         f"{len(contests)} decided by the contest (the forms' terms differ).",
         "",
         "| record | windows won | p | strong form right | weak form right |",

@@ -27,7 +27,13 @@ import scipy.stats
 
 from ..simulate import rk4_batch
 
-__all__ = ["DIVERGED", "FORECAST_EVIDENCE", "ForecastContest", "forecast_contest"]
+__all__ = [
+    "DIVERGED",
+    "FORECAST_EVIDENCE",
+    "FORECAST_LEANING",
+    "ForecastContest",
+    "forecast_contest",
+]
 
 #: The sign test's level: the challenger is taken only where its forecasts are closer
 #: in more windows than chance gives with at most this probability.  Where the strong
@@ -35,6 +41,10 @@ __all__ = ["DIVERGED", "FORECAST_EVIDENCE", "ForecastContest", "forecast_contest
 #: windows (p at least 0.45 in 20 records, ``validation/contest_level.py``), while
 #: right weak-form models were left at p from 2e-3 to 1e-2 by a level of 1e-3.
 FORECAST_EVIDENCE = 1e-2
+#: Short of :data:`FORECAST_EVIDENCE`, a challenger closer in more windows than chance
+#: gives with at most this probability (the conventional 5 %) leaves the incumbent's
+#: terms in doubt: the record leans towards the other model without deciding for it.
+FORECAST_LEANING = 0.05
 #: A forecast farther than this many spreads from a state's range has diverged.
 DIVERGED = 1e3
 #: RK4 steps per median sampling interval (more across a longer one: a gap).
