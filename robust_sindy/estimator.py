@@ -476,9 +476,10 @@ class HuberSINDy(BaseEstimator):
         prep = _Prepared(data, library, missing, temporal, z, theta, outlying, flags, stages)
         found = self._regress(prep, weak, why)
         if contested:
-            # Outliers kept the strong form: the weak form's model is the challenger.
-            # Asked only where the strong form's model warns, it left wrong models
-            # without a warning that the weak form's would have put right.
+            # Outliers kept the strong form: the weak form's model is the challenger,
+            # whether or not the strong form's model warns (wrong models without any
+            # warning are among those it puts right; design notes, "Every record
+            # challenged").
             rival, rival_why, _ = self._weak_rows(
                 data, temporal, library, z, missing, outliers_decide=False
             )

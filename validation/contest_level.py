@@ -147,7 +147,11 @@ def main(argv=None):
     text = table(rows)
     print(text)
     if args.out:
-        command = "python validation/contest_level.py " + " ".join(argv or sys.argv[1:])
+        command = "python validation/contest_level.py " + " ".join(
+            f"--{k.replace('_', '-')} {v}"
+            for k, v in vars(args).items()
+            if k not in ("jobs", "out") and v != ""
+        )
         Path(args.out).write_text(f"Command: `{command.strip()}`\n\n{text}\n")
 
 
