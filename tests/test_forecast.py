@@ -147,11 +147,12 @@ def test_outliers_keep_the_strong_form_unless_the_weak_forms_model_forecasts_bet
     # glitches: outliers keep the strong form below 1.5 % noise, and its derivatives,
     # carried through a nearly dependent library, select wrong terms (which ones moves
     # with the BLAS's rounding).  The weak form's model forecasts the record better in
-    # most windows and is taken: the right equations, in at least 3 of 4 records (4 of
-    # 4 on this machine; one record's strong-form model under another BLAS kernel is
-    # close enough that the windows do not tell them apart, and it stays).
+    # most windows and is taken: the right equations, in at least 3 of 4 records, at
+    # least 3 of them decisively (76 to 91 of 99 windows on this machine; under another
+    # BLAS kernel one record's strong-form model is another wrong one, and the weak
+    # form's wins 63 of 99, p = 0.004).
     sensors = _sensors()
-    right = 0
+    right = decisive = 0
     for seed in (201, 202, 203, 204):
         system, t, _, _, _, x = sensors.make_record("LotkaVolterra4", "glitches", "states",
                                                     seed, 3000, 0.01)  # fmt: skip
@@ -163,11 +164,14 @@ def test_outliers_keep_the_strong_form_unless_the_weak_forms_model_forecasts_bet
         assert contest["windows"] >= 90 and contest["equations"]  # challenged, differing
         if contest["chosen"] == "weak":
             assert model.diagnostics_.formulation == "weak"
-            assert contest["wins"] >= 0.65 * contest["windows"]
-            assert contest["p_value"] < FORECAST_EVIDENCE / 100
+            assert contest["p_value"] <= FORECAST_EVIDENCE
             assert "forecasts the record better" in model.diagnostics_.formulation_reason
             right += np.array_equal(model.coef_.T != 0, system.coef != 0)
-    assert right >= 3
+            decisive += bool(
+                contest["wins"] >= 0.65 * contest["windows"]
+                and contest["p_value"] < FORECAST_EVIDENCE / 100
+            )
+    assert right >= 3 and decisive >= 3
 
 
 @pytest.mark.parametrize("seed", range(2))
