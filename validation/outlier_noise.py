@@ -39,15 +39,32 @@ from robust_sindy.flows import polynomial_systems, simulate_system
 from robust_sindy.library import PolynomialLibrary
 
 
-def case(system, family: str, level: float, seed: int, form: str) -> dict | None:
-    """One fit: exactness, coefficient error, the warnings' kinds, the form used."""
+def draw_systems(n_systems: int, draw: int) -> list:
+    """``n_systems`` polynomial flows of dysts drawn at random (``draw`` seeds the draw)."""
+    systems = polynomial_systems()
+    pick = np.random.default_rng(draw).choice(len(systems), n_systems, replace=False)
+    return [systems[i] for i in pick]
+
+
+def record(system, family: str, level: float, seed: int):
+    """One record: sample times, the states as measured (``family`` over Gaussian noise
+    of ``level``) and the true coefficients in the degree-4 library's order; None where
+    the trajectory could not be integrated (not a case)."""
     try:
         t, x, _ = simulate_system(system, 2000, seed)
-    except RuntimeError:  # the trajectory could not be integrated: not a case
+    except RuntimeError:
         return None
     rng = np.random.default_rng([seed, 91, round(level * 1e4)])
     noisy, _ = zoo.contaminate_family(x, family, rng, zoo.Contamination(base_noise=level))
-    true = frontier._truth(system, x.shape[1])
+    return t, noisy, frontier._truth(system, x.shape[1])
+
+
+def case(system, family: str, level: float, seed: int, form: str) -> dict | None:
+    """One fit: exactness, coefficient error, the warnings' kinds, the form used."""
+    made = record(system, family, level, seed)
+    if made is None:
+        return None
+    t, noisy, true = made
     model = HuberSINDy(library=PolynomialLibrary(degree=4), formulation=form)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
@@ -60,11 +77,10 @@ def case(system, family: str, level: float, seed: int, form: str) -> dict | None
 
 
 def run(n_systems, draw, seed, families, levels, forms, jobs=2) -> list[dict]:
-    systems = polynomial_systems()
-    pick = np.random.default_rng(draw).choice(len(systems), n_systems, replace=False)
+    systems = draw_systems(n_systems, draw)
     cases = [
-        (systems[i], fam, lv, seed, form)
-        for fam in families for i in pick for lv in levels for form in forms
+        (system, fam, lv, seed, form)
+        for fam in families for system in systems for lv in levels for form in forms
     ]  # fmt: skip
     out = Parallel(n_jobs=jobs)(delayed(case)(*c) for c in cases)
     return [r for r in out if r is not None]
