@@ -673,3 +673,64 @@ def test_the_compiled_line_search_finds_the_exact_minimiser_along_the_direction(
         kinks += seed % 3 == 2 and bool(np.isclose(exact, 0.1, rtol=1e-9))
     assert searched >= 60  # most draws give a descent direction (69 of 90 here)
     assert kinks >= 20  # the crossing draws did put the minimiser on the crossing (30)
+
+
+def test_fits_in_a_shared_preparation_share_the_library_and_its_inlier_grams(monkeypatch):
+    # Inside shared_preparation the fits of one library array prepare it once, and the
+    # Newton steps of a later fit update the inlier Gram matrices the earlier fit left
+    # (its columns named by their targets) instead of forming them afresh; the fits
+    # reach the same certified optima as without the block.  Outside it, or for
+    # another array with the same values, every fit prepares its own.
+    from robust_sindy.solvers import problem
+
+    monkeypatch.setattr(driver, "USE_KERNEL", False)  # the NumPy iteration keeps them
+    rng = np.random.default_rng(7)
+    theta = rng.normal(size=(3000, 12))
+    y = theta @ rng.normal(size=(12, 3)) + 0.1 * rng.standard_t(2, size=(3000, 3))
+    prepared = []
+    real = problem._prepare
+
+    def counted(*args):
+        prepared.append(real(*args))
+        return prepared[-1]
+
+    monkeypatch.setattr(problem, "_prepare", counted)
+    deltas = [np.full(3, 0.2), np.full(3, 0.195), np.full(3, 0.19)]  # as delta settles
+    alone = [rs.fit(theta, y, "admm", d, 0.0) for d in deltas]
+    assert len(prepared) == 3 and all(p.carry is None for p in prepared)
+    with problem.shared_preparation():
+        shared = [rs.fit(theta, y, "admm", deltas[0], 0.0)]
+        for d in deltas[1:]:  # each from the last, as delta's iteration runs
+            shared.append(rs.fit(theta, y, "admm", d, 0.0, warm_start=shared[-1].coef))
+        rs.fit(theta.copy(), y, "admm", deltas[0], 0.0)
+    assert len(prepared) == 5  # one for theta, one for its copy
+    cache = prepared[3].carry["gram"]
+    assert cache.fresh == 3 and cache.updates > 0  # three columns formed once
+    for a, b in zip(alone, shared, strict=True):
+        assert a.converged and b.converged
+        np.testing.assert_allclose(b.coef, a.coef, rtol=1e-6, atol=1e-9)
+    assert problem._SHARED.get() is None  # the block left nothing behind
+
+
+def test_a_gram_cache_with_a_budget_lets_go_of_the_matrices_used_longest_ago():
+    # Named columns two at a time, 20 x 20 matrices (400 entries each) and a budget of
+    # 1000 entries: after each call at most the two matrices of that call and none
+    # older beyond the budget stay, and every matrix returned is the inlier Gram
+    # matrix, whether it was updated from a stored one or formed afresh.
+    rng = np.random.default_rng(2)
+    A = rng.normal(size=(400, 20))
+    G = A.T @ A
+    cache = nw.GramCache(budget=1000)
+    inl = rng.random((400, 6)) > 0.2
+    for step in range(3):
+        for pair in ([0, 1], [2, 3], [4, 5], [0, 1]):
+            inl[rng.integers(400, size=3), pair[0]] ^= True  # a few samples change sides
+            M = cache.gram(A, G, inl[:, pair], [f"c{k}" for k in pair])
+            for i, k in enumerate(pair):
+                w = inl[:, k].astype(float)
+                np.testing.assert_allclose(M[i], (A * w[:, None]).T @ A, atol=1e-9)
+            stored = sum(entry[2].size for entry in cache.entries.values())
+            assert {f"c{k}" for k in pair} <= set(cache.entries)
+            assert stored <= 1000
+            assert list(cache.entries)[-2:] == [f"c{k}" for k in pair]
+    assert cache.updates > 0  # the pair [0, 1] came back while still stored

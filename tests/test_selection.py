@@ -341,6 +341,33 @@ def test_a_path_stops_where_its_proposals_reach_their_limit(seed, compiled, monk
     np.testing.assert_array_equal(best != 0, sel.support)
 
 
+def test_the_limit_refit_of_every_column_at_once_is_each_columns_own():
+    # The selection's unpenalised refit on every term (the limit of the path's
+    # proposals) fits all columns in one problem; each column's coefficients are those
+    # of its own refit, to the certificates' tolerance, and they fill every column's
+    # cache (no refit of that support is run again).
+    from robust_sindy.selection import criteria
+    from robust_sindy.selection.refit import refit_column
+
+    rng = np.random.default_rng(5)
+    theta = rng.normal(size=(400, 9))
+    theta[:, 4] = 0.0  # a zero column: not among the terms refitted
+    y = theta @ rng.normal(size=(9, 3)) + 0.1 * rng.standard_t(2, size=(400, 3))
+    delta = np.array([0.1, 0.2, 0.15])
+    stage = criteria._Stage(theta, y, delta, 0.005, "admm", None, {})
+    stage.refit_every()
+    key = stage.every.tobytes()
+    assert not stage.every[4] and stage.every.sum() == 8
+    for k in range(3):
+        own = refit_column(theta, y[:, k], stage.every, delta[k], "admm", None, {})
+        got = stage.caches[k][key]
+        assert got[4] == 0.0
+        np.testing.assert_allclose(got, own, rtol=1e-6, atol=1e-9 * np.abs(own).max())
+    before = [stage.caches[k][key] for k in range(3)]
+    stage.refit_every()  # already cached: nothing fitted again
+    assert all(stage.caches[k][key] is before[k] for k in range(3))
+
+
 def _lorenz_problem(seed):
     lorenz = Lorenz()
     data = lorenz.generate()
@@ -465,6 +492,34 @@ def test_leverage_corrected_residuals_deleted_for_suspect_samples():
     assert np.allclose(out[100], r[100], rtol=0.05)  # a good sample: leverage ~ p / m
     out2 = _leverage_corrected(theta, r, keep, np.full(2, np.inf), np.zeros(800, dtype=bool))
     assert np.abs(out2[400]).max() < 1e-2 * np.abs(out[400]).max()  # studentised only
+
+
+def test_leverage_corrected_columns_sharing_inliers_share_their_leverages():
+    # Columns whose inliers coincide are studentised together, columns with their own
+    # inliers on their own: every column exactly as when it is corrected alone, with
+    # delta finite (three columns, two of them with the same inliers) and infinite
+    # (every sample an inlier of every column), suspects and row noise among them.
+    import scipy.sparse
+
+    from robust_sindy.selection.rows import _leverage_corrected
+
+    rng = np.random.default_rng(3)
+    theta = rng.normal(size=(300, 6))
+    r = rng.normal(size=(300, 3))
+    r[:, 1] = 0.5 * r[:, 0]  # the same samples within delta as column 0's
+    delta = np.array([1.0, 0.5, 1.0])
+    keep = rng.random(300) > 0.1
+    suspect = rng.random(300) < 0.05
+    noise = scipy.sparse.random(300, 320, density=0.01, random_state=4, format="csr")
+    noise = scipy.sparse.csr_array(noise + scipy.sparse.eye(300, 320))
+    for d in (delta, np.full(3, np.inf)):
+        for rn in (None, noise):
+            both = _leverage_corrected(theta, r, keep, d, suspect, rn)
+            for k in range(3):
+                alone = _leverage_corrected(theta, r[:, [k]], keep, d[[k]], suspect, rn)
+                np.testing.assert_array_equal(both[:, k], alone[:, 0])
+    inl = np.abs(r[keep]) <= delta
+    assert np.array_equal(inl[:, 0], inl[:, 1]) and not np.array_equal(inl[:, 0], inl[:, 2])
 
 
 def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():

@@ -13,7 +13,13 @@ from ..core.losses import huber, huber_psi
 from ..core.statistics import correlation_time
 from ..core.threads import map_threads
 from ..core.validation import check_int, check_problem, loss_delta
-from ..fitting import HUBER_EFFICIENCY_CONSTANT, ConvergenceWarning, auto_delta, check_huber_method
+from ..fitting import (
+    HUBER_EFFICIENCY_CONSTANT,
+    ConvergenceWarning,
+    auto_delta,
+    check_huber_method,
+    fit,
+)
 from .lam_path import Path, path, pilot_budget
 from .refit import STAGE_ROUNDS, refit_column, select_column
 from .subsets import best_subsets, subset_sizes
@@ -202,6 +208,29 @@ class _Stage:
             )  # fmt: skip
         return self.caches[k][key]
 
+    def refit_every(self):
+        """Every column's refit on every nonzero column of ``theta`` (the limit of the
+        path's proposals), in one fit of all the columns: they share its library, whose
+        equilibration and Gram matrix are then formed once, not once per column."""
+        key = self.every.tobytes()
+        todo = [k for k in range(self.y.shape[1]) if key not in self.caches[k]]
+        if not todo:
+            return
+        coef = np.zeros((self.theta.shape[1], len(todo)))
+        if self.every.any():
+            options = self.options
+            if self.dense_start is not None:
+                options = {**options, "warm_start": self.dense_start[self.every][:, todo]}
+            theta = self.theta if self.every.all() else self.theta[:, self.every]
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", ConvergenceWarning)
+                coef[self.every] = fit(
+                    theta, self.y[:, todo], self.method, self.delta[todo], 0.0,
+                    solver=self.solver, **options,
+                ).coef.reshape(-1, len(todo))  # fmt: skip
+        for i, k in enumerate(todo):
+            self.caches[k][key] = coef[:, i]
+
     def column(self, k, coef):
         """The stage on column ``k`` from the coefficients ``coef`` (p,)."""
         with warnings.catch_warnings():
@@ -256,6 +285,7 @@ class _Walk:
         p, n = theta.shape[1], y.shape[1]
         every = stage.every
         self.stage = stage
+        stage.refit_every()
         self.limit = np.stack(
             stage.side_by_side(lambda k: stage._column(k, stage.refit(k, every)), range(n)), 1
         )

@@ -24,6 +24,7 @@ from ..core.threads import map_threads
 from ..core.validation import as_float_array, check_int, check_positive, check_problem
 from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fit
 from ..solvers.newton import conditioned_cholesky, inlier_gram
+from ..solvers.problem import shared_preparation
 from ..timeseries.trajectories import segments_of
 from .bias import LibraryNoise, carried_noise, residual_noise_factor
 from .lam_path import pilot_budget
@@ -159,14 +160,22 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
         own = np.asarray(row_noise.multiply(row_noise).sum(axis=1)).ravel()  # diag(D D^T)
         typical = float(np.median(own[rows])) if rows.size else 1.0
 
-    def column(k):  # writes only column k of `out`: the columns run side by side
-        inl = np.abs(r[rows, k]) <= delta[k]
+    # Columns with the same inliers share their leverages (on clean data, most do).
+    inliers = np.abs(r[rows]) <= np.asarray(delta)[None, :]
+    groups: dict = {}
+    for k in range(r.shape[1]):
+        groups.setdefault(inliers[:, k].tobytes(), []).append(k)
+
+    def group(cols):  # writes only the columns `cols` of `out`: groups run side by side
+        inl = inliers[:, cols[0]]
         g = inlier_gram(a, gram, inl[:, None].astype(float))[0]
         at = rows[inl]
         if row_noise is None:
             lev = _leverages(a[inl], g)
             rest = np.maximum(1.0 - lev, np.finfo(float).eps)
-            out[at, k] = r[at, k] / np.where(suspect[at], rest, np.sqrt(rest))
+            scale = np.where(suspect[at], rest, np.sqrt(rest))
+            for k in cols:
+                out[at, k] = r[at, k] / scale
             return
         # The noise a fit on the inliers leaves in each residual: in the kept inliers'
         # (I - H) C (I - H), in the other rows' (not fitted, or fitted only through
@@ -174,17 +183,18 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
         w = _hat_factor(g)  # H = (w a_in^T)^T (w a_in^T)
         q = w @ a[inl].T
         share = _correlated_share(q, row_noise[at], w @ unit.T, row_noise, own) / typical
-        out[:, k] = r[:, k] / np.sqrt(share)
         # Kept suspects: also judged by the model fitted without them (deleted), the
         # larger of the two.
         rest = np.maximum(1.0 - np.einsum("ij,ij->j", q, q), np.finfo(float).eps)
         held = suspect[at]
-        deleted = r[at[held], k] / rest[held]
-        out[at[held], k] = np.where(
-            np.abs(deleted) > np.abs(out[at[held], k]), deleted, out[at[held], k]
-        )
+        for k in cols:
+            out[:, k] = r[:, k] / np.sqrt(share)
+            deleted = r[at[held], k] / rest[held]
+            out[at[held], k] = np.where(
+                np.abs(deleted) > np.abs(out[at[held], k]), deleted, out[at[held], k]
+            )
 
-    map_threads(column, range(r.shape[1]), flops=rows.size * theta.shape[1] ** 2)
+    map_threads(group, list(groups.values()), flops=rows.size * theta.shape[1] ** 2)
     return out
 
 
@@ -313,7 +323,9 @@ class _Pilots:
         ``delta`` (:func:`~robust_sindy.selection.auto_delta`)."""
         theta, y, method, budget = self.theta, self.y, self.method, self.budget
         theta_k, y_k = theta[keep], y[keep]
-        with warnings.catch_warnings():
+        # The fits of delta's iteration and the pilot's own fit share the library's
+        # preparation and the inlier Gram matrices of their Newton steps.
+        with warnings.catch_warnings(), shared_preparation():
             warnings.simplefilter("ignore", ConvergenceWarning)
             delta, start = auto_delta(
                 theta_k, y_k, method=method, return_coef=True, start=start, **budget

@@ -86,6 +86,15 @@ def _newton_groups(columns: np.ndarray, start: np.ndarray, shape) -> list[np.nda
     return [columns[i : i + size] for i in range(0, columns.size, size)]
 
 
+def _names(y: np.ndarray) -> list:
+    """Names of the target columns ``y`` (m, k) that stay the same from one fit to the
+    next: hashes of their samples' bytes.  The Newton iteration's Gram matrices kept in
+    ``Prepared.carry`` are looked up by them; any of them is valid for every column (it
+    is the library's, updated to the column's inliers), so a collision costs only the
+    update's size."""
+    return [hash(np.ascontiguousarray(y[:, k]).tobytes()) for k in range(y.shape[1])]
+
+
 def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
     """The fast path: batched Newton on all columns, ADMM for any it cannot certify.
 
@@ -173,6 +182,7 @@ def solve(theta, y, delta, lam, *, prepared: Prepared | None = None, **options):
                 start[:, rest],
                 max_steps=budget,
                 tol=tol,
+                names=None if prepared.carry is None else _names(y[:, todo[rest]]),
             )
             x[:, todo[rest]] = run.x
             certified[rest], steps_todo[rest] = run.certified, steps_todo[rest] + run.steps

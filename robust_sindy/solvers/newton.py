@@ -276,12 +276,17 @@ class GramCache:
     instead of forming it from the outliers or the inliers (``|O| w^2`` or
     ``|I| w^2``), after bordering it with the terms that joined the working set
     (``|O| w |new|``); :data:`DRIFT` bounds the rounding the updates may accumulate.
+    With a ``budget`` (entries of the stored matrices), the matrices used longest ago
+    are let go once the stored ones exceed it (a cache that outlives one Newton run,
+    :func:`~.problem.shared_preparation`, keeps about the library's own size, as the
+    driver's groups of columns do).
     """
 
-    def __init__(self):
+    def __init__(self, budget: int | None = None):
         self.entries: dict = {}
         self.updates = 0
         self.fresh = 0
+        self.budget = budget
 
     def gram(self, A, G, inlier: np.ndarray, ids, idx=None, sizes=None) -> np.ndarray:
         """``A_J^T diag(inlier_k) A_J`` for every column ``k`` of the boolean ``inlier``
@@ -333,7 +338,21 @@ class GramCache:
                 J = idx[c, :n].copy()
                 self.entries[ids[c]] = (inlier[:, c].copy(), J, M[c, :n, :n].copy(), np.zeros(n))
             self.fresh += len(fresh)
+        if self.budget is not None:
+            self._evict({ids[c] for c in range(k_all)})
         return M
+
+    def _evict(self, current: set) -> None:
+        """Let go of the matrices used longest ago, not those of ``current``, while the
+        stored ones exceed the budget."""
+        for key in current:  # the columns of this call: the most recently used
+            if key in self.entries:
+                self.entries[key] = self.entries.pop(key)
+        total = sum(entry[2].size for entry in self.entries.values())
+        for key in list(self.entries):
+            if total <= self.budget or key in current:
+                break
+            total -= self.entries.pop(key)[2].size
 
 
 def _border(A, G, inlier, J0, M0, drift, new):
@@ -636,7 +655,16 @@ class NewtonRun:
 
 
 def newton(
-    prepared: Prepared, y, delta, lam, x, *, max_steps: int, tol: float, patience: int | None = None
+    prepared: Prepared,
+    y,
+    delta,
+    lam,
+    x,
+    *,
+    max_steps: int,
+    tol: float,
+    patience: int | None = None,
+    names=None,
 ) -> NewtonRun:
     """Run the batched Newton method on scaled columns.
 
@@ -652,6 +680,8 @@ def newton(
     the best certified one (KKT <= ``tol``) or, for uncertified columns, the last.
     With ``patience``, a column also stops once its violation has not halved in that
     many steps (a bounded attempt, as the compiled iteration makes).
+    ``names`` (k,), hashable, name the columns for the inlier Gram matrices that
+    ``prepared.carry`` keeps between fits (:func:`~.problem.shared_preparation`).
     """
     A, G, norms = prepared.A, prepared.G, prepared.a_norms
     T = 1.0 / norms**2
@@ -669,7 +699,11 @@ def newton(
     stalled = np.zeros(k_all, dtype=bool)
     mu = np.zeros(k_all)
     act = np.arange(k_all)
-    cache = GramCache()
+    if prepared.carry is not None and names is not None:
+        cache = prepared.carry.setdefault("gram", GramCache(budget=A.shape[0] * A.shape[1]))
+        ids = np.asarray(names, dtype=object)
+    else:
+        cache, ids = GramCache(), np.arange(k_all)
     for step in range(max_steps + 1):
         # All columns still active: views, not copies, of the m x n arrays.
         cols = slice(None) if act.size == k_all else act
@@ -713,7 +747,7 @@ def newton(
         if not go.all():
             act, xa, ya, la, da, g = act[go], xa[:, go], ya[:, go], la[:, go], da[go], g[:, go]
             ra = r[:, act]
-        d = direction(A, G, T, ra, da, la, xa, g, free[:, act], mu[act], cache, act)
+        d = direction(A, G, T, ra, da, la, xa, g, free[:, act], mu[act], cache, ids[act])
         t, d = step_lengths(A, ra, xa, d, g, la, da, prepared.lipschitz, obj[go])
         # Damping only after a step the objective did not accept in full, relaxed again
         # after full steps (a trust-region-like rule; undamped Newton near the optimum).

@@ -5,11 +5,15 @@
   computed once from ``Theta`` and reused by every column, every point of a ``lam``
   path and every solver;
 * :data:`DEFAULT_OPTIONS` -- the fast path's options; :data:`PAPER_OPTIONS` the paper's;
-* :class:`SolverOutput` -- what every solver returns to :func:`robust_sindy.fit`.
+* :class:`SolverOutput` -- what every solver returns to :func:`robust_sindy.fit`;
+* :func:`shared_preparation` -- a block whose fits of the same library array share its
+  preparation and the Newton iteration's inlier Gram matrices.
 """
 
 from __future__ import annotations
 
+import contextlib
+from contextvars import ContextVar
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -26,6 +30,7 @@ __all__ = [
     "SolverOutput",
     "column_objective",
     "prepare",
+    "shared_preparation",
     "solve_sym",
     "target_scale",
 ]
@@ -137,6 +142,9 @@ class Prepared:
     equilibrate: bool
     kappa: float
     _factor: tuple | None = None
+    #: What the Newton iteration keeps from one fit to the next (inside
+    #: :func:`shared_preparation` only; None elsewhere).
+    carry: dict | None = None
 
     def condition(self) -> float:
         """2-norm condition number of the equilibrated library, from its Gram matrix (whose
@@ -153,8 +161,39 @@ class Prepared:
         return self._factor
 
 
+_SHARED: ContextVar[dict | None] = ContextVar("robust_sindy_shared_preparation", default=None)
+
+
+@contextlib.contextmanager
+def shared_preparation():
+    """Within the block, the fast path's fits of the same library array (the same
+    object, not modified inside the block) share its preparation: the equilibration and
+    Gram matrix are formed once, and the Newton iteration's inlier Gram matrices carry
+    over from one fit to the next, updated by the samples that changed sides (a pilot's
+    fits of one set of samples at successive thresholds).  Per thread (a context
+    variable): fits in other threads prepare their own."""
+    token = _SHARED.set({})
+    try:
+        yield
+    finally:
+        _SHARED.reset(token)
+
+
 def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
-    """Equilibrate ``theta`` and form its Gram matrix once (pass as ``prepared``)."""
+    """Equilibrate ``theta`` and form its Gram matrix once (pass as ``prepared``); inside
+    :func:`shared_preparation`, once per array for the whole block."""
+    shared = _SHARED.get()
+    key = (id(theta), bool(equilibrate), float(kappa))
+    if shared is not None and key in shared and shared[key][0] is theta:
+        return shared[key][1]
+    prepared = _prepare(theta, equilibrate, kappa)
+    if shared is not None:
+        prepared.carry = {}
+        shared[key] = (theta, prepared)  # the reference keeps the id from being reused
+    return prepared
+
+
+def _prepare(theta: np.ndarray, equilibrate: bool, kappa: float) -> Prepared:
     if theta.size <= KERNEL_WORK and not theta.flags.c_contiguous:
         # The compiled iteration reads the library by rows: a small one in another
         # layout (a selection of columns, theta[:, keep], is column-major) is copied
