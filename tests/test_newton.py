@@ -722,7 +722,7 @@ def test_a_gram_cache_with_a_budget_lets_go_of_the_matrices_used_longest_ago():
     G = A.T @ A
     cache = nw.GramCache(budget=1000)
     inl = rng.random((400, 6)) > 0.2
-    for step in range(3):
+    for _ in range(3):
         for pair in ([0, 1], [2, 3], [4, 5], [0, 1]):
             inl[rng.integers(400, size=3), pair[0]] ^= True  # a few samples change sides
             M = cache.gram(A, G, inl[:, pair], [f"c{k}" for k in pair])
