@@ -732,5 +732,5 @@ def test_a_gram_cache_with_a_budget_lets_go_of_the_matrices_used_longest_ago():
             stored = sum(entry[2].size for entry in cache.entries.values())
             assert {f"c{k}" for k in pair} <= set(cache.entries)
             assert stored <= 1000
-            assert list(cache.entries)[-2:] == [f"c{k}" for k in pair]
+            assert list(cache.entries)[-2:] == [f"c{k}" for k in pair]  # the newest
     assert cache.updates > 0  # the pair [0, 1] came back while still stored

@@ -339,18 +339,21 @@ class GramCache:
                 self.entries[ids[c]] = (inlier[:, c].copy(), J, M[c, :n, :n].copy(), np.zeros(n))
             self.fresh += len(fresh)
         if self.budget is not None:
-            self._evict({ids[c] for c in range(k_all)})
+            self._evict([ids[c] for c in range(k_all)])
         return M
 
-    def _evict(self, current: set) -> None:
-        """Let go of the matrices used longest ago, not those of ``current``, while the
-        stored ones exceed the budget."""
-        for key in current:  # the columns of this call: the most recently used
+    def _evict(self, current: list) -> None:
+        """Let go of the matrices used longest ago, not those of ``current`` (the
+        columns of this call, in their order: the order of the entries, and so what is
+        let go later, does not depend on the names' hashes), while the stored ones
+        exceed the budget."""
+        for key in current:  # the most recently used, moved to the end
             if key in self.entries:
                 self.entries[key] = self.entries.pop(key)
+        keep = set(current)
         total = sum(entry[2].size for entry in self.entries.values())
         for key in list(self.entries):
-            if total <= self.budget or key in current:
+            if total <= self.budget or key in keep:
                 break
             total -= self.entries.pop(key)[2].size
 
