@@ -182,13 +182,13 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
         # Huber's clipped score) that of a prediction.
         w = _hat_factor(g)  # H = (w a_in^T)^T (w a_in^T)
         q = w @ a[inl].T
-        share = _correlated_share(q, row_noise[at], w @ unit.T, row_noise, own) / typical
+        spread = np.sqrt(_correlated_share(q, row_noise[at], w @ unit.T, row_noise, own) / typical)
         # Kept suspects: also judged by the model fitted without them (deleted), the
         # larger of the two.
         rest = np.maximum(1.0 - np.einsum("ij,ij->j", q, q), np.finfo(float).eps)
         held = suspect[at]
         for k in cols:
-            out[:, k] = r[:, k] / np.sqrt(share)
+            out[:, k] = r[:, k] / spread
             deleted = r[at[held], k] / rest[held]
             out[at[held], k] = np.where(
                 np.abs(deleted) > np.abs(out[at[held], k]), deleted, out[at[held], k]
