@@ -341,6 +341,43 @@ def test_a_path_stops_where_its_proposals_reach_their_limit(seed, compiled, monk
     np.testing.assert_array_equal(best != 0, sel.support)
 
 
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_a_path_stops_where_its_proposals_can_no_longer_compete(seed):
+    # Noise as large as the signal's terms, few samples per term: the selection stage
+    # keeps most of the library at the path's limit, whose support the proposals never
+    # settle on.  The path stops once its proposals are too large to come within the
+    # BIC's margin of the best candidate walked (their loss is bounded below), and what
+    # is chosen is what the whole path would have chosen; every candidate of the points
+    # left out scores worse than the chosen one by more than the margin.
+    from robust_sindy.selection import criteria
+
+    rng = np.random.default_rng(seed)
+    m, p, n = 400, 40, 3
+    theta = rng.normal(size=(m, p)) + 0.3 * rng.normal(size=(m, 1))
+    coef = np.zeros((p, n))
+    for k in range(n):
+        coef[rng.choice(p, 3, replace=False), k] = rng.choice([-1, 1], 3) * rng.uniform(0.5, 2, 3)
+    y = theta @ coef + rng.normal(size=(m, n))
+    sel = select(theta, y, subsets=False)
+    used = np.isfinite(sel.scores)
+    stage = criteria._Stage(theta, y, sel.delta, 0.005, "admm", None, {})
+    walk = criteria._Walk(stage, used.shape[0])
+    assert np.all((walk.limit != 0).sum(axis=0) > p // 2)  # the case this rule is for
+    assert np.all(used.sum(axis=0) < 0.6 * used.shape[0])  # the densest points left out
+    full = path(theta, y, sel.delta, n_lams=used.shape[0])
+    candidates = criteria._stage_all(stage, full.coef)
+    tau, scores = criteria._settled_scores(
+        theta, y, candidates, full.walked, sel.delta, walk.tau, None
+    )
+    np.testing.assert_array_equal(tau, sel.tau)
+    chosen = criteria._pick(scores)
+    np.testing.assert_array_equal(candidates[chosen, :, range(n)].T != 0, sel.support)
+    best = scores[chosen, range(n)]
+    assert np.all(
+        scores[~used] > np.broadcast_to(best, used.shape)[~used] + criteria.MIN_BIC_MARGIN
+    )
+
+
 def test_the_limit_refit_of_every_column_at_once_is_each_columns_own():
     # The selection's unpenalised refit on every term (the limit of the path's
     # proposals) fits all columns in one problem; each column's coefficients are those

@@ -27,6 +27,8 @@ from .subsets import best_subsets, subset_sizes
 __all__ = [
     "CRITERIA",
     "MIN_BIC_MARGIN",
+    "OUT_OF_REACH_GROWTH",
+    "OUT_OF_REACH_POINTS",
     "STABLE_POINTS",
     "Selection",
     "bic_from_loss",
@@ -194,6 +196,8 @@ class _Stage:
         self.ynorm = np.linalg.norm(y, axis=0)
         self.every = np.any(theta != 0, axis=0)
         self.dense_start = dense_start if method == "admm" else None
+        self._basis: np.ndarray | None = None
+        self._floors: dict = {}
 
     def refit(self, k, keep):
         """Column ``k``'s unpenalised Huber refit on the terms ``keep``."""
@@ -230,6 +234,23 @@ class _Stage:
                 ).coef.reshape(-1, len(todo))  # fmt: skip
         for i, k in enumerate(todo):
             self.caches[k][key] = coef[:, i]
+
+    def floor_basis(self) -> np.ndarray:
+        """An orthonormal basis of the library's nonzero columns (formed once)."""
+        if self._basis is None:
+            self._basis = np.linalg.qr(self.theta[:, self.every])[0]
+        return self._basis
+
+    def whole_floor(self, k) -> float:
+        """A lower bound on column ``k``'s Huber loss on any support: no support fits
+        better than every term together (:func:`_loss_floor`, the dual bound at the
+        refit on every term, valid even if that refit stopped early).  Call
+        :meth:`floor_basis` once before calling this from several threads."""
+        if k not in self._floors:
+            r = self.y[:, k] - self.theta @ self.refit(k, self.every)
+            basis = self.floor_basis()
+            self._floors[k] = _loss_floor(basis, self.y[:, k], None, self.delta[k], r, basis)
+        return self._floors[k]
 
     def column(self, k, coef):
         """The stage on column ``k`` from the coefficients ``coef`` (p,)."""
@@ -268,30 +289,85 @@ def _stage_all(stage: _Stage, path_coef):
 #: the unpenalised fit) at this many consecutive points past the limit's size.
 STABLE_POINTS = 2
 
+#: ... or once it has proposed, at this many consecutive points, supports that cannot
+#: score within :data:`MIN_BIC_MARGIN` of the best candidate walked and that have at
+#: least :data:`OUT_OF_REACH_GROWTH` times as many terms as that candidate.
+OUT_OF_REACH_POINTS = 3
+
+#: See :data:`OUT_OF_REACH_POINTS`.
+OUT_OF_REACH_GROWTH = 2.0
+
 
 class _Walk:
     """The selection stage along a path as it is walked (``until`` of :func:`path`).
 
     As ``lam`` falls the path tends to the unpenalised fit on every term, and the
-    stage's proposal to the stage of that fit (``limit``).  Once a column's point has
-    more terms than the limit and its proposal has been the limit's support at
-    :data:`STABLE_POINTS` consecutive points, the rest of its path is not walked: the
-    points still to come are the densest, and by far the most expensive, and they
-    would propose the same support again.  ``candidates`` (L, p, n) and ``used`` (L, n)
-    are the proposals at the points walked."""
+    stage's proposal to the stage of that fit (``limit``).  The points still to come
+    are the densest, and by far the most expensive.  A column's path is not walked
+    further once
 
-    def __init__(self, stage: _Stage, n_points: int):
+    * its proposal has been the limit's support at :data:`STABLE_POINTS` consecutive
+      points with more terms than the limit: the points to come would propose it
+      again; or
+    * its proposals have been out of reach at :data:`OUT_OF_REACH_POINTS` consecutive
+      points: so many terms that no fit on them can score within
+      :data:`MIN_BIC_MARGIN` of the best candidate walked, and at least
+      :data:`OUT_OF_REACH_GROWTH` times as many as that candidate.  A score is at
+      least that of the least Huber loss of any support (the dual bound of
+      :func:`_loss_floor` at the unpenalised fit on every term) plus its own size's
+      penalty.  Where the limit's stage keeps most of the library (the noise of
+      derivatives from noisy states leaves most terms above the stage's tolerance),
+      the proposals never settle on the limit: they jump from the few terms of the
+      best candidates to many and grow from there towards the limit's size.  The
+      bound holds for each proposal walked; that the proposals still to come are no
+      smaller is what the three points and the growth stand for (in small libraries
+      the proposals can step back from a size just out of reach to a better one).
+      The bound is on the BIC under the first correlation time ``tau`` (that of the
+      limit's residuals); the choice only raises it (:func:`_settled_scores`), and a
+      proposal out of reach stays behind the best under any longer one (``tau log(m
+      / tau)`` grows with ``tau`` up to ``m / e``; the rule is off beyond).
+
+    ``candidates`` (L, p, n) and ``used`` (L, n) are the proposals at the points
+    walked, ``tau`` (n,) the first correlation time."""
+
+    def __init__(self, stage: _Stage, n_points: int, segments=None):
         theta, y = stage.theta, stage.y
-        p, n = theta.shape[1], y.shape[1]
+        m, p = theta.shape
+        n = y.shape[1]
         every = stage.every
         self.stage = stage
         stage.refit_every()
         self.limit = np.stack(
             stage.side_by_side(lambda k: stage._column(k, stage.refit(k, every)), range(n)), 1
         )
+        self.tau = correlation_time(huber_psi(y - theta @ self.limit, stage.delta), segments)
+        self.sigma, self.penalty = bic_terms(m, stage.delta, self.tau)
+        self.floor = np.full(n, np.nan)  # the least loss of any support, when first needed
+        self.best = np.full(n, np.inf)  # the best score walked (under ``tau``)
+        self.best_size = np.zeros(n, dtype=int)  # and its number of terms
+        self.bounded = self.tau <= m / np.e
         self.candidates = np.zeros((n_points, p, n))
         self.used = np.zeros((n_points, n), dtype=bool)
         self.run = np.zeros(n, dtype=int)
+        self.reach = np.zeros(n, dtype=int)
+
+    def _out_of_reach(self, k, c) -> bool:
+        """Whether no fit on the terms of ``c`` can score within :data:`MIN_BIC_MARGIN`
+        of the best candidate of column ``k`` walked so far (``c`` among them), and
+        ``c`` has at least :data:`OUT_OF_REACH_GROWTH` times its terms."""
+        stage, on = self.stage, np.flatnonzero(c)
+        loss = huber(stage.y[:, k] - stage.theta[:, on] @ c[on], stage.delta[k]).sum()
+        args = (self.sigma[k], self.penalty[k], self.tau[k])
+        score = bic_from_loss(loss, on.size, *args)
+        if score < self.best[k]:
+            self.best[k], self.best_size[k] = score, on.size
+        # (No larger than the best, the bound at its size is at most the best's score.)
+        size = self.best_size[k]
+        if not self.bounded[k] or on.size <= size or on.size < OUT_OF_REACH_GROWTH * size:
+            return False
+        if np.isnan(self.floor[k]):
+            self.floor[k] = stage.whole_floor(k)
+        return bic_from_loss(self.floor[k], on.size, *args) > self.best[k] + MIN_BIC_MARGIN
 
     def until(self, i, coef, cols):
         done = np.zeros(cols.size, dtype=bool)
@@ -301,8 +377,11 @@ class _Walk:
             self.used[i, k] = True
             on, limit = c != 0, self.limit[:, k] != 0
             past = np.count_nonzero(coef[:, k]) > np.count_nonzero(limit)
-            self.run[k] = self.run[k] + 1 if past and np.array_equal(on, limit) else 0
-            done[a] = self.run[k] >= STABLE_POINTS
+            settled = past and np.array_equal(on, limit)
+            out_of_reach = self._out_of_reach(k, c)  # first: it keeps the best score walked
+            self.run[k] = self.run[k] + 1 if settled else 0
+            self.reach[k] = self.reach[k] + 1 if out_of_reach else 0
+            done[a] = self.run[k] >= STABLE_POINTS or self.reach[k] >= OUT_OF_REACH_POINTS
         return done
 
 
@@ -406,7 +485,7 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
     sigma, penalty = bic_terms(m, delta, tau)
     every = stage.every
     whole_library = theta[:, every]
-    basis = np.linalg.qr(whole_library)[0]  # shared by every equation's floor
+    stage.floor_basis()  # shared by every equation's floor
     # Shared by every equation's search of pairs and beyond (single terms need less).
     gram = whole_library.T @ whole_library if subset_sizes(whole_library.shape[1]) > 1 else None
     found, sizes = [[] for _ in range(n)], np.zeros(n, dtype=int)
@@ -418,10 +497,7 @@ def _subset_candidates(stage: _Stage, reference, tau, best):
         def bic(loss, size, k=k):
             return bic_from_loss(loss, size, sigma[k], penalty[k], tau[k])
 
-        dense = stage.refit(k, every)
-        # No support fits better than every term together: the dual bound at the dense
-        # refit's residuals (valid even if that refit stopped early).
-        whole = _loss_floor(whole_library, y[:, k], None, delta[k], y[:, k] - theta @ dense, basis)
+        whole = stage.whole_floor(k)
         floor = bic(whole, 0)
         top = best[k]
         # Sizes whose penalty alone takes them past the best score are not searched.
@@ -578,10 +654,14 @@ def select(
 
     With ``criterion="bic"`` a column's path stops once the stage has proposed the
     support of its limit (the stage of the unpenalised fit on every term) at
-    :data:`STABLE_POINTS` consecutive points denser than that support: the points
-    left are the densest and the most expensive, and as ``lam`` falls the proposal
-    tends to that limit (``nan`` scores past the stop; where the path is solved point
-    by point, those points are not solved at all: ``path.walked``).  The limit is also
+    :data:`STABLE_POINTS` consecutive points denser than that support, or, at
+    :data:`OUT_OF_REACH_POINTS` consecutive points, supports too large to score within
+    :data:`MIN_BIC_MARGIN` of the best candidate walked (their loss is at least the
+    least of any support's) and at least :data:`OUT_OF_REACH_GROWTH` times its size
+    (``_Walk``): the points left are the densest and
+    the most expensive, and as ``lam`` falls the proposal tends to that limit (``nan``
+    scores past the stop; where the path is solved point by point, those points are
+    not solved at all: ``path.walked``).  The limit is also
     the most complete model: its residuals give the BIC its first correlation time,
     which the residuals of the candidate chosen then raise until the choice settles
     (``Selection.tau``): with few samples per term the most complete model's residuals
@@ -669,7 +749,7 @@ def select(
         # stage (the limit's among them) score candidates, and the chosen point is
         # checked below.
         warnings.simplefilter("ignore", ConvergenceWarning)
-        walk = _Walk(stage, n_lams) if criterion == "bic" else None
+        walk = _Walk(stage, n_lams, segments) if criterion == "bic" else None
         full = path(
             theta,
             y,
@@ -690,8 +770,7 @@ def select(
         # stage of the unpenalised fit, the proposals' limit), then of the candidate
         # chosen, until the choice settles.
         densest = walk.limit
-        tau = correlation_time(huber_psi(y - theta @ densest, delta_k), segments)
-        tau, scores = _settled_scores(theta, y, candidates, walk.used, delta_k, tau, segments)
+        tau, scores = _settled_scores(theta, y, candidates, walk.used, delta_k, walk.tau, segments)
     else:
         scores = _cv_scores(theta, y, full.lams, delta_k, tol, n_folds, method, solver, progress,
                             path_options)  # fmt: skip
