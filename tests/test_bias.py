@@ -361,6 +361,27 @@ def test_library_noise_stored_by_columns_computes_what_the_dense_arrays_do():
         LibraryNoise.of([np.zeros((m, p)), np.zeros((m, p + 1))])
 
 
+def test_library_noise_reaching_a_sparse_model_leaves_out_only_states_it_cannot_reach():
+    # The states whose columns a sparse model does not use contribute exactly zero and
+    # are left out; a state with a value that is not finite is always in (0 * nan).
+    from robust_sindy.selection.bias import LibraryNoise
+
+    rng = np.random.default_rng(4)
+    m, p = 50, 10
+    cols = [np.array([0, 1]), np.array([1, 2, 3]), np.array([4, 5]), np.array([6])]
+    values = [rng.normal(size=(m, c.size)) for c in cols]
+    values[3][7, 0] = np.nan
+    noise = LibraryNoise(p, cols, values)
+    coef = np.zeros(p)
+    coef[[2, 8]] = [1.5, -2.0]  # state 1's column 2; column 8 is no state's
+    reached = noise.reaching(coef)
+    assert [k for k, _ in reached] == [1, 3]
+    every = noise.per_state(coef)
+    for k, g in reached:
+        np.testing.assert_array_equal(g, every[k])
+    assert not every[0].any() and not every[2].any()
+
+
 def test_library_noise_of_a_many_state_library_takes_a_few_libraries_of_memory():
     # A degree-2 library of n states: each state enters about 2 / n of the columns, so
     # the noise of all states is about twice the library, not n times; its values are

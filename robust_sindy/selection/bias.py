@@ -78,6 +78,7 @@ class LibraryNoise:
         self.p = int(p)
         self.cols = [np.asarray(c, dtype=int) for c in cols]
         self.values = [np.asarray(v, dtype=float) for v in values]
+        self._finite: list[bool] | None = None  # per state, all values finite (when needed)
         if len(self.cols) != len(self.values) or any(
             v.ndim != 2 or v.shape[1] != c.size for c, v in zip(self.cols, self.values, strict=True)
         ):
@@ -143,6 +144,22 @@ class LibraryNoise:
         """``N_k @ coef`` per state, (m,) or (m, n) for ``coef`` (p,) or (p, n)."""
         coef = np.asarray(coef, dtype=float)
         return [v @ coef[c] for c, v in zip(self.cols, self.values, strict=True)]
+
+    def reaching(self, coef) -> list[tuple[int, np.ndarray]]:
+        """``(k, N_k @ coef)`` for ``coef`` (p,), the states whose noise it can reach:
+        those with a nonzero coefficient on one of their columns, or with values that
+        are not all finite.  For the others ``N_k @ coef`` is exactly zero, and a
+        sparse ``coef`` leaves most states out."""
+        coef = np.asarray(coef, dtype=float)
+        if self._finite is None:
+            self._finite = [bool(np.isfinite(v).all()) for v in self.values]
+        return [
+            (k, v @ coef[c])
+            for k, (c, v, finite) in enumerate(
+                zip(self.cols, self.values, self._finite, strict=True)
+            )
+            if not finite or np.any(coef[c] != 0)
+        ]
 
     def carried(self, coef) -> np.ndarray:
         """``sqrt(sum_k (N_k @ coef)^2)``: the standard deviation of the noise the

@@ -149,7 +149,7 @@ class RowNoise:
         ww, ws, ss, at = self.prepare()
         q = np.zeros(self.weights.shape[1])
         own = np.zeros_like(q)
-        for state, g in enumerate(self.columns.per_state(xi)):
+        for state, g in self.columns.reaching(xi):  # the others' g is zero
             q += g * g
             if state == k:
                 own = g
