@@ -510,10 +510,20 @@ def run_scaling(
     methods=SCALING_METHODS,
     memory: bool = False,
     progress: bool = True,
+    derivatives: str = "exact",
+    noise: float = 0.0,
 ) -> list[ScalingRow]:
     """Time each method on Lorenz-96 records of each (states, samples) size and
     contamination family (:func:`~robust_sindy.flows.lorenz96_records`); with
-    ``memory``, the peak memory of ``HuberSINDy()`` from a second, traced run."""
+    ``memory``, the peak memory of ``HuberSINDy()`` from a second, traced run.
+
+    ``derivatives="states"`` gives both methods the states alone (each differentiates
+    them its own way); ``noise`` adds Gaussian noise of that share of each state's
+    spread to every reading before the family's contamination."""
+    if derivatives not in DERIVATIVES:
+        raise ValueError(f"derivatives must be one of {DERIVATIVES}; got {derivatives!r}")
+    if not (np.isfinite(noise) and noise >= 0):
+        raise ValueError(f"noise must be a finite number >= 0; got {noise!r}")
     from tqdm import tqdm
 
     from .compile_kernels import warm_up
@@ -526,6 +536,12 @@ def run_scaling(
                disable=not progress)  # fmt: skip
     for n, m in sizes:
         t, x, x_dot, system = lorenz96_records(n, m, seed)
+        if noise > 0:
+            x = x + noise * x.std(axis=0) * np.random.default_rng([seed, n, m, 1]).normal(
+                size=x.shape
+            )
+        if derivatives == "states":
+            x_dot = None
         truth = system.coef != 0
         for family in families:
             noisy, _ = contaminate_family(x, family, np.random.default_rng([seed, n, m]))

@@ -118,6 +118,29 @@ def test_the_scaling_run_times_and_checks_each_method():
     assert "| 5 (21) | 1500 | clean | " in text and "exact" in text
 
 
+def test_the_scaling_run_from_noisy_states_gives_both_methods_the_states_alone(monkeypatch):
+    given = []
+    fit_method = zoo._fit_method
+
+    def spy(method, system, t, x, x_dot, seed=0):
+        given.append((method, x_dot, x.copy()))
+        return fit_method(method, system, t, x, x_dot, seed)
+
+    monkeypatch.setattr(zoo, "_fit_method", spy)
+    rows = zoo.run_scaling(((5, 1500),), families=("clean",), progress=False,
+                           derivatives="states", noise=0.02)  # fmt: skip
+    assert [r.method for r in rows] == ["HuberSINDy()", "PySINDy STLSQ"]
+    assert all(r.exact is not None and r.seconds > 0 for r in rows)
+    assert [m for m, _, _ in given] == ["huber", "stlsq"] and all(d is None for _, d, _ in given)
+    _, x, _, _ = lorenz96_records(5, 1500, 0)
+    added = given[0][2] - x  # the noise (and the zoo's base noise of the clean family)
+    np.testing.assert_allclose(added.std(axis=0) / x.std(axis=0), 0.02, rtol=0.1)
+    with pytest.raises(ValueError, match="derivatives"):
+        zoo.run_scaling(((5, 1500),), derivatives="measured", progress=False)
+    with pytest.raises(ValueError, match="noise"):
+        zoo.run_scaling(((5, 1500),), noise=-0.1, progress=False)
+
+
 def test_the_sensor_scripts_rings_have_the_coefficients_of_their_equations():
     # validation/sensors.py's LorenzRing_N is scored against its coefficients on the
     # degree-2 monomials: they must give the ring's equations (each Lorenz system driven

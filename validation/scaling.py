@@ -9,7 +9,11 @@ whether each found exactly the true support and, with ``--memory``, the peak mem
 ``HuberSINDy()`` over the library's own size (a second, traced run).
 
     python validation/scaling.py [--sizes 10:4000,20:4000,40:12000] [--families clean,rows]
+                                 [--derivatives exact|states] [--noise 0.03]
                                  [--memory] [--out validation/results/scaling]
+
+With ``--derivatives states`` both methods get the states alone (``--noise``: Gaussian
+noise of that share of each state's spread on every reading).
 """
 
 from __future__ import annotations
@@ -29,18 +33,34 @@ def main(argv=None) -> None:
                         help="states:samples pairs, comma-separated")  # fmt: skip
     parser.add_argument("--families", default="clean,rows")
     parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--derivatives", default="exact", choices=("exact", "states"))
+    parser.add_argument(
+        "--noise", type=float, default=0.0,
+        help="Gaussian noise on every reading, a share of each state's spread",
+    )  # fmt: skip
     parser.add_argument("--memory", action="store_true", help="also the peak memory")
     parser.add_argument("--out", default="validation/results/scaling")
     args = parser.parse_args(argv)
     sizes = [tuple(int(v) for v in pair.split(":")) for pair in args.sizes.split(",")]
+    if not (args.noise >= 0 and args.noise < float("inf")):
+        parser.error(f"--noise: expected a finite number >= 0; got {args.noise!r}")
     rows = zoo.run_scaling(sizes, families=args.families.split(","), seed=args.seed,
-                           memory=args.memory)  # fmt: skip
+                           memory=args.memory, derivatives=args.derivatives,
+                           noise=args.noise)  # fmt: skip
     out = Path(args.out)
     write_rows([asdict(r) for r in rows], out / "scaling.csv")
     command = "python validation/scaling.py " + " ".join(argv or sys.argv[1:])
+    given = (
+        "Exact derivatives"
+        if args.derivatives == "exact"
+        else "From the states alone (no derivatives given)"
+    )
+    if args.noise:
+        given += f", Gaussian noise of {100 * args.noise:g} % of each state's spread"
+    title = "" if args.derivatives == "exact" else " from the states"
     text = (
-        "# Many states: Lorenz-96, whole identifications\n\n"
-        f"Command: `{command.strip()}`. Exact derivatives, degree-2 monomials, one BLAS "
+        f"# Many states: Lorenz-96, whole identifications{title}\n\n"
+        f"Command: `{command.strip()}`. {given}, degree-2 monomials, one BLAS "
         "thread, both methods on the same record in one process; ratio: HuberSINDy() time "
         "over PySINDy STLSQ time.\n\n" + zoo.scaling_table(rows) + "\n"
     )
