@@ -342,7 +342,6 @@ class _Walk:
         )
         self.tau = correlation_time(huber_psi(y - theta @ self.limit, stage.delta), segments)
         self.sigma, self.penalty = bic_terms(m, stage.delta, self.tau)
-        self.floor = np.full(n, np.nan)  # the least loss of any support, when first needed
         self.best = np.full(n, np.inf)  # the best score walked (under ``tau``)
         self.best_size = np.zeros(n, dtype=int)  # and its number of terms
         self.bounded = self.tau <= m / np.e
@@ -354,20 +353,21 @@ class _Walk:
     def _out_of_reach(self, k, c) -> bool:
         """Whether no fit on the terms of ``c`` can score within :data:`MIN_BIC_MARGIN`
         of the best candidate of column ``k`` walked so far (``c`` among them), and
-        ``c`` has at least :data:`OUT_OF_REACH_GROWTH` times its terms."""
+        ``c`` has at least :data:`OUT_OF_REACH_GROWTH` times as many terms as that
+        candidate."""
         stage, on = self.stage, np.flatnonzero(c)
         loss = huber(stage.y[:, k] - stage.theta[:, on] @ c[on], stage.delta[k]).sum()
         args = (self.sigma[k], self.penalty[k], self.tau[k])
         score = bic_from_loss(loss, on.size, *args)
         if score < self.best[k]:
             self.best[k], self.best_size[k] = score, on.size
-        # (No larger than the best, the bound at its size is at most the best's score.)
+        # (A proposal no larger than the best is never out of reach: the bound at its
+        # size is at most the best's score.)
         size = self.best_size[k]
         if not self.bounded[k] or on.size <= size or on.size < OUT_OF_REACH_GROWTH * size:
             return False
-        if np.isnan(self.floor[k]):
-            self.floor[k] = stage.whole_floor(k)
-        return bic_from_loss(self.floor[k], on.size, *args) > self.best[k] + MIN_BIC_MARGIN
+        bound = bic_from_loss(stage.whole_floor(k), on.size, *args)
+        return bound > self.best[k] + MIN_BIC_MARGIN
 
     def until(self, i, coef, cols):
         done = np.zeros(cols.size, dtype=bool)
@@ -658,14 +658,13 @@ def select(
     :data:`OUT_OF_REACH_POINTS` consecutive points, supports too large to score within
     :data:`MIN_BIC_MARGIN` of the best candidate walked (their loss is at least the
     least of any support's) and at least :data:`OUT_OF_REACH_GROWTH` times its size
-    (``_Walk``): the points left are the densest and
-    the most expensive, and as ``lam`` falls the proposal tends to that limit (``nan``
-    scores past the stop; where the path is solved point by point, those points are
-    not solved at all: ``path.walked``).  The limit is also
-    the most complete model: its residuals give the BIC its first correlation time,
-    which the residuals of the candidate chosen then raise until the choice settles
-    (``Selection.tau``): with few samples per term the most complete model's residuals
-    have lost the slow part of the errors.
+    (``_Walk``): the points left are the densest and the most expensive, and as
+    ``lam`` falls the proposal tends to that limit (``nan`` scores past the stop; where
+    the path is solved point by point, those points are not solved at all:
+    ``path.walked``).  The limit is also the most complete model: its residuals give
+    the BIC its first correlation time, which the residuals of the candidate chosen
+    then raise until the choice settles (``Selection.tau``): with few samples per term
+    the most complete model's residuals have lost the slow part of the errors.
 
     4. ``criterion="bic"`` (and ``subsets``): the best few supports of every size up
        to a budget, by weighted least squares under the Huber weights of the limit
