@@ -52,7 +52,8 @@ def _full_walks():
             self.candidates[i, :, k] = c
             self.used[i, k] = True
             on = np.flatnonzero(c)
-            loss = cr.huber(stage.y[:, k] - stage.theta[:, on] @ c[on], stage.delta[k]).sum()
+            loss = cr._candidate_loss(stage.theta, stage.y[:, k], c, stage.delta[k])
+            self.losses[i, k] = loss
             args = (self.sigma[k], self.penalty[k], self.tau[k])
             limit = self.limit[:, k] != 0
             nnz = int(np.count_nonzero(coef[:, k]))

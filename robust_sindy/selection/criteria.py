@@ -328,7 +328,8 @@ class _Walk:
       / tau)`` grows with ``tau`` up to ``m / e``; the rule is off beyond).
 
     ``candidates`` (L, p, n) and ``used`` (L, n) are the proposals at the points
-    walked, ``tau`` (n,) the first correlation time."""
+    walked, ``losses`` (L, n) their Huber losses, ``tau`` (n,) the first correlation
+    time."""
 
     def __init__(self, stage: _Stage, n_points: int, segments=None):
         theta, y = stage.theta, stage.y
@@ -347,26 +348,26 @@ class _Walk:
         self.bounded = self.tau <= m / np.e
         self.candidates = np.zeros((n_points, p, n))
         self.used = np.zeros((n_points, n), dtype=bool)
+        self.losses = np.full((n_points, n), np.nan)  # the proposals' Huber losses
         self.run = np.zeros(n, dtype=int)
         self.reach = np.zeros(n, dtype=int)
 
-    def _out_of_reach(self, k, c) -> bool:
+    def _out_of_reach(self, k, c, loss) -> bool:
         """Whether no fit on the terms of ``c`` can score within :data:`MIN_BIC_MARGIN`
-        of the best candidate of column ``k`` walked so far (``c`` among them), and
-        ``c`` has at least :data:`OUT_OF_REACH_GROWTH` times as many terms as that
-        candidate."""
-        stage, on = self.stage, np.flatnonzero(c)
-        loss = huber(stage.y[:, k] - stage.theta[:, on] @ c[on], stage.delta[k]).sum()
+        of the best candidate of column ``k`` walked so far (``c``, of Huber loss
+        ``loss``, among them), and ``c`` has at least :data:`OUT_OF_REACH_GROWTH` times
+        as many terms as that candidate."""
+        size = np.count_nonzero(c)
         args = (self.sigma[k], self.penalty[k], self.tau[k])
-        score = bic_from_loss(loss, on.size, *args)
+        score = bic_from_loss(loss, size, *args)
         if score < self.best[k]:
-            self.best[k], self.best_size[k] = score, on.size
+            self.best[k], self.best_size[k] = score, size
         # (A proposal no larger than the best is never out of reach: the bound at its
         # size is at most the best's score.)
-        size = self.best_size[k]
-        if not self.bounded[k] or on.size <= size or on.size < OUT_OF_REACH_GROWTH * size:
+        best = self.best_size[k]
+        if not self.bounded[k] or size <= best or size < OUT_OF_REACH_GROWTH * best:
             return False
-        bound = bic_from_loss(stage.whole_floor(k), on.size, *args)
+        bound = bic_from_loss(self.stage.whole_floor(k), size, *args)
         return bound > self.best[k] + MIN_BIC_MARGIN
 
     def until(self, i, coef, cols):
@@ -378,27 +379,46 @@ class _Walk:
             on, limit = c != 0, self.limit[:, k] != 0
             past = np.count_nonzero(coef[:, k]) > np.count_nonzero(limit)
             settled = past and np.array_equal(on, limit)
-            out_of_reach = self._out_of_reach(k, c)  # first: it keeps the best score walked
+            stage = self.stage
+            self.losses[i, k] = _candidate_loss(stage.theta, stage.y[:, k], c, stage.delta[k])
+            # First: it keeps the best score walked.
+            out_of_reach = self._out_of_reach(k, c, self.losses[i, k])
             self.run[k] = self.run[k] + 1 if settled else 0
             self.reach[k] = self.reach[k] + 1 if out_of_reach else 0
             done[a] = self.run[k] >= STABLE_POINTS or self.reach[k] >= OUT_OF_REACH_POINTS
         return done
 
 
-def _scores(theta, y, candidates, used, delta, tau):
-    """The BIC (:func:`information_criterion`) of the candidates ``used`` (L, n),
-    ``nan`` at the others; each from its own terms' columns."""
-    L, _, n = candidates.shape
-    sigma, penalty = bic_terms(theta.shape[0], delta, tau)
-    out = np.full((L, n), np.nan)
+def _candidate_loss(theta, y, coef, delta) -> float:
+    """The Huber loss of one column's candidate ``coef`` (p,), from its own terms'
+    columns."""
+    on = np.flatnonzero(coef)
+    return float(huber(y - theta[:, on] @ coef[on], delta).sum())
+
+
+def _losses(theta, y, candidates, used, delta) -> np.ndarray:
+    """:func:`_candidate_loss` of the candidates ``used`` (L, n), ``nan`` at the others."""
+    out = np.full(used.shape, np.nan)
     for i, k in zip(*np.nonzero(used), strict=True):
-        on = np.flatnonzero(candidates[i, :, k])
-        loss = huber(y[:, k] - theta[:, on] @ candidates[i, on, k], delta[k]).sum()
-        out[i, k] = bic_from_loss(loss, on.size, sigma[k], penalty[k], tau[k])
+        out[i, k] = _candidate_loss(theta, y[:, k], candidates[i, :, k], delta[k])
     return out
 
 
-def _settled_scores(theta, y, candidates, used, delta, tau, segments):
+def _scored(m, losses, candidates, delta, tau) -> np.ndarray:
+    """The BIC (:func:`information_criterion`) of candidates (L, p, n) of Huber losses
+    ``losses`` (L, n; ``nan`` where there is no candidate) on ``m`` samples."""
+    sigma, penalty = bic_terms(m, delta, tau)
+    return bic_from_loss(losses, np.count_nonzero(candidates, axis=1), sigma, penalty, tau)
+
+
+def _scores(theta, y, candidates, used, delta, tau):
+    """The BIC (:func:`information_criterion`) of the candidates ``used`` (L, n),
+    ``nan`` at the others; each from its own terms' columns."""
+    losses = _losses(theta, y, candidates, used, delta)
+    return _scored(theta.shape[0], losses, candidates, delta, tau)
+
+
+def _settled_scores(theta, y, candidates, used, delta, tau, segments, losses=None):
     """The correlation times (n,) and the BIC (:func:`_scores`) of the candidates, with
     each column's correlation time that of the residuals of the candidate it chooses.
 
@@ -419,20 +439,26 @@ def _settled_scores(theta, y, candidates, used, delta, tau, segments):
     settled from below is the first of them; the correlation time is then raised to the
     longest of a candidate's own residuals under which that candidate is chosen
     (:func:`_longest_settled`).
+
+    ``losses`` (L, n), the candidates' Huber losses (:func:`_losses`) where already
+    known; they do not depend on the correlation time, so they are computed once.
     """
     cols = np.arange(y.shape[1])
-    scores = _scores(theta, y, candidates, used, delta, tau)
+    if losses is None:
+        losses = _losses(theta, y, candidates, used, delta)
+    m = theta.shape[0]
+    scores = _scored(m, losses, candidates, delta, tau)
     for _ in range(candidates.shape[0]):
         chosen = candidates[_pick(scores), :, cols].T
         new = np.maximum(tau, correlation_time(huber_psi(y - theta @ chosen, delta), segments))
         if np.array_equal(new, tau):
             break
         tau = new
-        scores = _scores(theta, y, candidates, used, delta, tau)
+        scores = _scored(m, losses, candidates, delta, tau)
     longest = _longest_settled(theta, y, candidates, used, delta, tau, segments)
     if not np.array_equal(longest, tau):
         tau = longest
-        scores = _scores(theta, y, candidates, used, delta, tau)
+        scores = _scored(m, losses, candidates, delta, tau)
     return tau, scores
 
 
@@ -769,7 +795,9 @@ def select(
         # stage of the unpenalised fit, the proposals' limit), then of the candidate
         # chosen, until the choice settles.
         densest = walk.limit
-        tau, scores = _settled_scores(theta, y, candidates, walk.used, delta_k, walk.tau, segments)
+        tau, scores = _settled_scores(
+            theta, y, candidates, walk.used, delta_k, walk.tau, segments, walk.losses
+        )
     else:
         scores = _cv_scores(theta, y, full.lams, delta_k, tol, n_folds, method, solver, progress,
                             path_options)  # fmt: skip
