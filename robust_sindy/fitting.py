@@ -577,6 +577,17 @@ def delta_floor(y, floor: float = 1e-4) -> np.ndarray:
     return np.where(lower > 0, lower, 1.0)
 
 
+def least_squares_start(theta, y, floor: float = 1e-4):
+    """The start of :func:`auto_delta` without one: least squares' coefficients (p, n)
+    and the threshold of their residuals, ``delta`` (n,) (the threshold formula, at
+    least :func:`delta_floor`).  Columns are independent: a start for a subset of the
+    columns is this start's columns."""
+    factor = HUBER_EFFICIENCY_CONSTANT * fitted_scale_factor(*theta.shape)
+    coef = np.linalg.lstsq(theta, y, rcond=None)[0]
+    delta = np.maximum(factor * robust_scale(y - theta @ coef), delta_floor(y, floor))
+    return delta, coef
+
+
 def auto_delta(
     theta,
     xdot,
@@ -641,8 +652,7 @@ def auto_delta(
     # The residuals of a fit of every column are narrower than the errors.
     factor = HUBER_EFFICIENCY_CONSTANT * fitted_scale_factor(*theta.shape)
     if start is None:
-        coef = np.linalg.lstsq(theta, y, rcond=None)[0]
-        delta = np.maximum(factor * robust_scale(y - theta @ coef), lower)
+        delta, coef = least_squares_start(theta, y, floor)
     else:
         delta = np.maximum(np.broadcast_to(np.asarray(start[0], dtype=float), lower.shape), lower)
         coef = np.array(start[1], dtype=float).reshape(theta.shape[1], y.shape[1])

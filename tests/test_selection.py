@@ -985,3 +985,46 @@ def test_the_criterion_settles_on_the_longest_correlation_time_its_choice_confir
             assert tau[0] == pytest.approx(own[3], rel=1e-12)
     assert two_settled >= 5  # the premise: a dense candidate also settles (measured 15/20)
     assert right >= 9  # measured 20 of 20; settling from below alone: 5 of 20
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_leverage_cache_updates_agree_with_fresh_leverages(seed):
+    # The row screen's pilots carry each column's leverages from one call to the next,
+    # updated by the rows that joined or left its inliers (and rows of the library that
+    # changed).  Over a sequence of calls (samples dropped and taken back, thresholds
+    # moving, a row replaced, a row that alone spans a direction leaving the fit), the
+    # corrected residuals agree with those computed afresh to rounding, and most calls
+    # were updates.  (The row that alone spans a direction has leverage 1: its
+    # correction is rounding over rounding, beyond any cutoff either way.)
+    from robust_sindy.selection import rows as screen
+
+    rng = np.random.default_rng(seed)
+    m, p = 800, 60
+    theta = rng.normal(size=(m, p)) * rng.uniform(0.1, 10.0, size=p)
+    theta[:, -1] = 0.0
+    theta[7, -1] = 3.0  # the only row with this term: its leverage is 1
+    r = rng.normal(size=(m, 3))
+    suspect = rng.random(m) < 0.05
+    keep = rng.random(m) > 0.02
+    cache = screen._LeverageCache(theta, keep)
+    spent = []
+    current = theta
+    for call in range(8):
+        keep[rng.choice(m, 2)] ^= True
+        keep[7] = call < 6  # the last two calls without the row
+        if call == 4:  # rows of the library replaced (the second chance's judge)
+            current = current.copy()
+            current[rng.choice(m, 3, replace=False), :-1] = rng.normal(size=(3, p - 1))
+        delta = np.quantile(np.abs(r), 0.8, axis=0) * (1.0 + 0.002 * call)
+        cached = screen._leverage_corrected(current, r, keep, delta, suspect, cache=cache)
+        fresh = screen._leverage_corrected(current, r, keep, delta, suspect)
+        # r / out: sqrt(1 - h) or 1 - h (1 where not corrected); a leverage of 1 gives
+        # rounding over rounding, a residual beyond any cutoff either way.
+        others = np.arange(m) != 7
+        np.testing.assert_allclose(r[others] / cached[others], r[others] / fresh[others],
+                                   rtol=0.0, atol=1e-9)  # fmt: skip
+        spans = keep[7] & (np.abs(r[7]) <= delta)
+        assert np.all(np.abs(cached[7, spans]) > 1e6 * np.abs(r[7, spans]))
+        assert np.all(np.abs(fresh[7, spans]) > 1e6 * np.abs(r[7, spans]))
+        spent.append(max(e.spent for e in cache.entries.values()) if cache.entries else 0)
+    assert sum(s > 0 for s in spent) >= 3

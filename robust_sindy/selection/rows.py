@@ -9,6 +9,7 @@ outlier.  :func:`gross_residuals` is its rule, shared with the out-of-core refit
 
 from __future__ import annotations
 
+import threading
 import warnings
 from dataclasses import dataclass, replace
 from typing import NamedTuple
@@ -22,8 +23,15 @@ from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
 from ..core.threads import map_threads
 from ..core.validation import as_float_array, check_int, check_positive, check_problem
-from ..fitting import ConvergenceWarning, auto_delta, check_huber_method, fit
-from ..solvers.newton import conditioned_cholesky, inlier_gram
+from ..fitting import (
+    ConvergenceWarning,
+    auto_delta,
+    check_huber_method,
+    fit,
+    least_squares_start,
+)
+from ..solvers.driver import column_groups
+from ..solvers.newton import CHOLESKY_MARGIN, conditioned_cholesky, inlier_gram
 from ..solvers.problem import shared_preparation
 from ..timeseries.trajectories import segments_of
 from .bias import LibraryNoise, carried_noise, residual_noise_factor
@@ -125,7 +133,7 @@ class Screening:
         )
 
 
-def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.ndarray:
+def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None, cache=None) -> np.ndarray:
     """Residuals ``r`` (m, n) of a Huber fit on the samples ``keep``, those of the kept
     inliers (``|r| <= delta``) divided by ``sqrt(1 - h_i)`` (studentised), or by
     ``1 - h_i`` (deleted: the residual the sample would have if the fit had not seen
@@ -148,13 +156,30 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
     (I - H)`` for the inliers, that of a prediction for the other rows), ``c`` the
     median of ``diag(D D^T)`` over the kept rows (``F = I - H`` for independent rows of
     equal noise: the studentised residual); a kept suspect's is the larger of that and
-    its deleted residual."""
+    its deleted residual.
+
+    A ``cache`` (:class:`_LeverageCache`, independent rows only) updates each column's
+    leverages from the last call's by the rows whose membership changed."""
     out = r.copy()
     rows = np.flatnonzero(keep)
-    a = theta[rows]
-    norms = np.linalg.norm(a, axis=0)
-    a /= np.where(norms > 0, norms, 1.0)  # a leverage does not depend on column scales
-    gram = a.T @ a  # shared: each column's inlier Gram matrix is formed from it
+    if row_noise is not None:
+        cache = None
+    if cache is not None:
+        cache.see(theta)
+        a = cache.scaled[rows]
+    else:
+        a = theta[rows]
+        norms = np.linalg.norm(a, axis=0)
+        a /= np.where(norms > 0, norms, 1.0)  # a leverage does not depend on column scales
+    shared: list = []  # the kept rows' Gram matrix, formed once when a column needs it
+    lock = threading.Lock()
+
+    def inliers_gram(inl):  # each column's inlier Gram matrix is formed from the shared one
+        with lock:
+            if not shared:
+                shared.append(a.T @ a)
+        return inlier_gram(a, shared[0], inl[:, None].astype(float))[0]
+
     if row_noise is not None:  # a sparse array (screen_rows converts it)
         unit = theta / np.where(norms > 0, norms, 1.0)
         own = np.asarray(row_noise.multiply(row_noise).sum(axis=1)).ravel()  # diag(D D^T)
@@ -168,15 +193,20 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
 
     def group(cols):  # writes only the columns `cols` of `out`: groups run side by side
         inl = inliers[:, cols[0]]
-        g = inlier_gram(a, gram, inl[:, None].astype(float))[0]
         at = rows[inl]
         if row_noise is None:
-            lev = _leverages(a[inl], g)
+            lev = None
+            if cache is not None:
+                member = np.zeros(theta.shape[0], dtype=bool)
+                member[at] = True
+                lev = cache.leverages(cols, member, lambda: inliers_gram(inl))
+            lev = _leverages(a[inl], inliers_gram(inl)) if lev is None else lev[at]
             rest = np.maximum(1.0 - lev, np.finfo(float).eps)
             scale = np.where(suspect[at], rest, np.sqrt(rest))
             for k in cols:
                 out[at, k] = r[at, k] / scale
             return
+        g = inliers_gram(inl)
         # The noise a fit on the inliers leaves in each residual: in the kept inliers'
         # (I - H) C (I - H), in the other rows' (not fitted, or fitted only through
         # Huber's clipped score) that of a prediction.
@@ -196,6 +226,158 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None) -> np.nd
 
     map_threads(group, list(groups.values()), flops=rows.size * theta.shape[1] ** 2)
     return out
+
+
+#: The leverage cache's stored inverse Gram matrices (``p x p`` per target column) take
+#: at most this many times the memory of the library matrix (``m x p``); the columns
+#: beyond are computed afresh at every call.
+LEVERAGE_CACHE_SIZE = 3.0
+
+#: Rows changed (joined or left the inliers, cumulated since a column's last fresh
+#: factorisation) beyond this share of the terms: a fresh factorisation (an update by
+#: ``r`` rows costs about ``r / p`` of one, and every update adds its rounding).
+LEVERAGE_UPDATE_SHARE = 0.5
+
+#: Reciprocal condition number (LAPACK's 1-norm estimate, which may be smaller than the
+#: 2-norm's by up to the order of the matrix) of an inlier Gram matrix below which its
+#: leverages are not cached: an update's rounding in a leverage is about the machine
+#: epsilon over it, 2e-5 here, far below what moves a residual across the screen's
+#: cutoff.  Never below the Cholesky factor's own acceptance
+#: (:func:`~robust_sindy.solvers.newton.conditioned_cholesky` at the pseudo-inverse's
+#: cut): where that fails, the pseudo-inverse decides as without the cache.
+LEVERAGE_RCOND = 1e-11
+
+#: Smallest eigenvalue magnitude (relative to the largest, at least 1) of the capacitance
+#: matrix of an update: smaller, the rows changed nearly remove a direction of the Gram
+#: matrix, and the column is factorised afresh.
+LEVERAGE_PIVOT = 1e-6
+
+
+class _Leverages(NamedTuple):
+    """A column's cached state: its inlier rows (m,), the inverse of their Gram matrix,
+    every row's leverage under it, and the rows changed since it was factorised."""
+
+    member: np.ndarray
+    inverse: np.ndarray
+    leverage: np.ndarray
+    spent: int
+
+
+class _LeverageCache:
+    """The leverages of :func:`_leverage_corrected`, per target column, carried from one
+    pilot of the row screen to the next.
+
+    Each column keeps the inverse ``G^-1`` of its inliers' Gram matrix and every row's
+    leverage ``h_i = a_i G^-1 a_i^T`` (the rows scaled by the column norms of the first
+    call, kept fixed: a leverage does not depend on them).  The next call updates them by
+    the ``r`` rows that joined or left the inliers, or whose row of the library changed
+    (the judge of :func:`_second_chance`), by the Sherman-Morrison-Woodbury formula:
+    with ``U`` those rows (r x p), ``S`` their signs (+1 joined, -1 left), ``W = G^-1
+    U^T`` and the capacitance ``K = S + U W``, ``G'^-1 = G^-1 - W K^-1 W^T`` and
+    ``h'_i = h_i - z_i K^-1 z_i^T`` with ``z_i = a_i W``: ``m p r`` operations instead
+    of ``m p^2``.  Between two pilots of the screen a few samples change, and only the
+    inliers near the threshold ``delta`` come and go.
+
+    A column is factorised afresh when it has no entry, when the rows changed since its
+    last factorisation exceed :data:`LEVERAGE_UPDATE_SHARE` of the terms, when ``K`` is
+    nearly singular (:data:`LEVERAGE_PIVOT`) or when an updated inlier's leverage leaves
+    ``[0, 1]``; it is not cached when its Gram matrix is ill-conditioned
+    (:data:`LEVERAGE_RCOND`; the caller's pseudo-inverse then decides) or the entries
+    would exceed :data:`LEVERAGE_CACHE_SIZE`, and then not for the rest of the screen.
+    The leverages agree with a fresh computation to within the rounding the condition
+    number allows.
+    """
+
+    def __init__(self, theta, keep):
+        norms = np.linalg.norm(theta[keep], axis=0)
+        self.norms = np.where(norms > 0, norms, 1.0)
+        self.theta = theta
+        self.scaled = theta / self.norms
+        self.moved = np.zeros(0, dtype=int)
+        self.before = np.zeros((0, theta.shape[1]))
+        self.entries: dict[int, _Leverages] = {}
+        self.refused: set[int] = set()
+        self.capacity = int(LEVERAGE_CACHE_SIZE * theta.shape[0] / theta.shape[1])
+
+    def see(self, theta) -> None:
+        """Start a call on ``theta`` (the same samples): the rows that differ from the
+        last call's are updated in every column."""
+        if theta is self.theta:
+            self.moved = np.zeros(0, dtype=int)
+            return
+        self.moved = np.flatnonzero((theta != self.theta).any(axis=1))
+        self.before = self.scaled[self.moved]
+        self.theta = theta
+        self.scaled = theta / self.norms
+
+    def leverages(self, cols, member, gram):
+        """Every row's leverage (m,) under the inliers ``member`` (m,) of the columns
+        ``cols`` (which share them), or None where the Gram matrix is ill-conditioned;
+        ``gram()`` forms that matrix when a fresh factorisation needs it."""
+        if cols[0] in self.refused:
+            return None
+        entry = self.entries.get(cols[0])
+        new = None if entry is None else self._update(entry, member)
+        if new is None:
+            new = self._fresh(member, gram())
+        if new is None:  # ill-conditioned: this column's leverages are not cached
+            self.refused.update(cols)
+            return None
+        if len(self.entries) < self.capacity or cols[0] in self.entries:
+            for k in cols:
+                self.entries[k] = new
+        return new.leverage
+
+    def _fresh(self, member, g):
+        c, info = scipy.linalg.lapack.dpotrf(g, lower=True, clean=False)
+        if info != 0:
+            return None
+        rcond, info = scipy.linalg.lapack.dpocon(c, np.abs(g).sum(axis=0).max(), uplo="L")
+        least = max(LEVERAGE_RCOND, CHOLESKY_MARGIN * g.shape[0] * np.finfo(float).eps)
+        if info != 0 or not rcond >= least:
+            return None
+        z = scipy.linalg.solve_triangular(c, self.scaled.T, lower=True, check_finite=False)
+        leverage = np.einsum("ij,ij->j", z, z)
+        inverse, info = scipy.linalg.lapack.dpotri(c, lower=True)
+        if info != 0:
+            return None
+        inverse = np.tril(inverse) + np.tril(inverse, -1).T
+        return _Leverages(member.copy(), inverse, leverage, 0)
+
+    def _update(self, entry: _Leverages, member):
+        a, moved = self.scaled, self.moved
+        changed = np.zeros(member.size, dtype=bool)
+        changed[moved] = True
+        left = np.flatnonzero(entry.member & (~member | changed))
+        joined = np.flatnonzero(member & (~entry.member | changed))
+        r = left.size + joined.size
+        if entry.spent + r > LEVERAGE_UPDATE_SHARE * entry.inverse.shape[0]:
+            return None
+        inverse, leverage = entry.inverse, entry.leverage
+        if r:
+            old = a[left]
+            if moved.size:  # a row of the library that changed leaves as it was
+                at = np.minimum(np.searchsorted(moved, left), moved.size - 1)
+                was = moved[at] == left
+                old[was] = self.before[at[was]]
+            u = np.vstack([old, a[joined]])
+            sign = np.concatenate([-np.ones(left.size), np.ones(joined.size)])
+            w = inverse @ u.T
+            vals, vecs = np.linalg.eigh(np.diag(sign) + u @ w)
+            if np.min(np.abs(vals)) <= LEVERAGE_PIVOT * max(1.0, np.max(np.abs(vals))):
+                return None
+            k_inv = (vecs / vals) @ vecs.T
+            z = a @ w
+            leverage = leverage - np.einsum("ij,ij->i", z @ k_inv, z)
+            inverse = inverse - (w @ k_inv) @ w.T
+            inverse = (inverse + inverse.T) / 2
+        if moved.size:
+            leverage = leverage.copy()
+            leverage[moved] = np.einsum("ij,ij->i", a[moved] @ inverse, a[moved])
+        inside = leverage[member]
+        if np.any(inside < -LEVERAGE_PIVOT) or np.any(inside > 1.0 + LEVERAGE_PIVOT):
+            return None
+        return _Leverages(member.copy(), inverse, leverage, entry.spent + r)
 
 
 def _hat_factor(gram):
@@ -282,10 +464,15 @@ class _Pilots:
     on ``theta`` (m, p) and ``y`` (m, n), started from the samples ``first``."""
 
     def __init__(
-        self, theta, y, first, segments, half, noise, cutoff, rounds, method, row_noise=None
-    ):
+        self, theta, y, first, segments, half, noise, cutoff, rounds, method, row_noise=None,
+        cache=None,
+    ):  # fmt: skip
         self.theta, self.y, self.first = theta, y, first.copy()
         self.row_noise = row_noise
+        # Each pilot's leverages are updated from the last one's (independent rows).
+        if cache is None and row_noise is None:
+            cache = _LeverageCache(theta, first)
+        self.cache = cache
         self.segments, self.half, self.noise = segments, half, noise
         self.cutoff, self.rounds, self.method = cutoff, rounds, method
         rms = np.sqrt(np.mean(y**2, axis=0))
@@ -298,7 +485,7 @@ class _Pilots:
         """The same pilots on another library matrix (of the same samples)."""
         return _Pilots(
             theta, self.y, self.first, self.segments, self.half, self.noise, self.cutoff,
-            self.rounds, self.method, self.row_noise,
+            self.rounds, self.method, self.row_noise, self.cache,
         )  # fmt: skip
 
     def bound_of(self, r, scale, coef, with_local: bool = True):
@@ -321,24 +508,36 @@ class _Pilots:
         their leverage (:func:`_leverage_corrected`), and its ``delta``.  ``start``, the
         ``(delta, coef)`` of a pilot on nearly the same samples, starts its choice of
         ``delta`` (:func:`~robust_sindy.selection.auto_delta`)."""
-        theta, y, method, budget = self.theta, self.y, self.method, self.budget
+        theta, y, method = self.theta, self.y, self.method
         theta_k, y_k = theta[keep], y[keep]
+        n = y.shape[1]
+        delta, coef = np.zeros(n), np.zeros((theta.shape[1], n))
         # The fits of delta's iteration and the pilot's own fit share the library's
-        # preparation and the inlier Gram matrices of their Newton steps.
+        # preparation and the inlier Gram matrices of their Newton steps: group by group
+        # (columns are fitted independently), so that each group's matrices carry over.
+        groups = column_groups(n, theta_k.shape)
+        if start is None and len(groups) > 1:  # one least-squares fit of every column
+            start = least_squares_start(theta_k, y_k)
         with warnings.catch_warnings(), shared_preparation():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            delta, start = auto_delta(
-                theta_k, y_k, method=method, return_coef=True, start=start, **budget
-            )
-            delta = np.atleast_1d(delta)
-            if method == "admm":
-                budget = {**budget, "warm_start": start}
-            coef = fit(theta_k, y_k, method, delta, 0.0, **budget).coef
-            coef = coef.reshape(theta.shape[1], -1)
+            for cols in groups:
+                budget = self.budget
+                begin = None if start is None else (start[0][cols], start[1][:, cols])
+                d, c = auto_delta(
+                    theta_k, y_k[:, cols], method=method, return_coef=True, start=begin,
+                    **budget,
+                )  # fmt: skip
+                delta[cols] = d
+                if method == "admm":
+                    budget = {**budget, "warm_start": c}
+                fitted = fit(theta_k, y_k[:, cols], method, delta[cols], 0.0, **budget).coef
+                coef[:, cols] = fitted.reshape(theta.shape[1], -1)
         del theta_k
         r = y - theta @ coef
         r = r - np.median(r[keep], axis=0)
-        corrected = _leverage_corrected(theta, r, keep, delta, ~self.first, self.row_noise)
+        corrected = _leverage_corrected(
+            theta, r, keep, delta, ~self.first, self.row_noise, self.cache
+        )
         return coef, corrected, delta
 
     def _chance(self, keep) -> int:

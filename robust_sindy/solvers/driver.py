@@ -42,6 +42,7 @@ __all__ = [
     "KERNEL_STEPS",
     "USE_KERNEL",
     "WARM_STEPS",
+    "column_groups",
     "solve",
     "solve_path",
     "use_kernel",
@@ -69,6 +70,16 @@ def use_kernel(A, columns: int) -> bool:
         and A.theta.flags.c_contiguous
         and m * p * columns <= KERNEL_WORK
     )
+
+
+def column_groups(k: int, shape) -> list[np.ndarray]:
+    """The ``k`` target columns of fits of every term of a library of ``shape`` (m, p)
+    in the groups the batched Newton iteration takes them in (at most about the
+    library's own memory of inlier Gram matrices per group).  Several fits of the same
+    columns inside :func:`~robust_sindy.solvers.problem.shared_preparation`, run group
+    by group, carry each group's matrices from one fit to the next; run fit by fit, the
+    next group's let the last one's go."""
+    return _newton_groups(np.arange(k), np.ones((shape[1], k)), shape)
 
 
 def _newton_groups(columns: np.ndarray, start: np.ndarray, shape) -> list[np.ndarray]:
