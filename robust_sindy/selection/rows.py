@@ -322,6 +322,8 @@ class _LeverageCache:
             new = self._fresh(member, gram())
         if new is None:  # ill-conditioned: this column's leverages are not cached
             self.refused.update(cols)
+            for k in cols:
+                self.entries.pop(k, None)
             return None
         if len(self.entries) < self.capacity or cols[0] in self.entries:
             for k in cols:
