@@ -847,14 +847,15 @@ def test_correlated_residual_shares_match_their_dense_formula():
     inl[[3, 17, 40]] = False
     d = scipy.sparse.csr_array(np.where(rng.random((60, 90)) < 0.1, rng.normal(size=(60, 90)), 0))
     w = _hat_factor(a[inl].T @ a[inl])
-    own = np.asarray(d.multiply(d).sum(axis=1)).ravel()
-    share = _correlated_share(w @ a[inl].T, d[inl], w @ a.T, d, own)
+    c = scipy.sparse.csr_array(d @ d.T)
+    at = np.flatnonzero(inl)
+    share = _correlated_share(w @ a[inl].T, c[at], at, w @ a.T, c.diagonal())
     proj = a @ np.linalg.pinv(a[inl])  # maps the inliers' noise to the fit's values
     dense = d.toarray()
     resid = dense - proj @ dense[inl]  # every row's residual noise, per source
     assert np.allclose(share, (resid**2).sum(axis=1), rtol=1e-9, atol=1e-12)
     eye = scipy.sparse.identity(60, format="csr")
-    plain = _correlated_share(w @ a[inl].T, eye[inl], w @ a.T, eye, np.ones(60))
+    plain = _correlated_share(w @ a[inl].T, eye[at], at, w @ a.T, np.ones(60))
     lev = np.einsum("ij,ji->i", a, np.linalg.pinv(a[inl].T @ a[inl]) @ a.T)
     assert np.allclose(plain[inl], 1.0 - lev[inl], rtol=1e-9)
     assert np.allclose(plain[~inl], 1.0 + lev[~inl], rtol=1e-9)

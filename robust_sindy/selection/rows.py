@@ -182,7 +182,8 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None, cache=No
 
     if row_noise is not None:  # a sparse array (screen_rows converts it)
         unit = theta / np.where(norms > 0, norms, 1.0)
-        own = np.asarray(row_noise.multiply(row_noise).sum(axis=1)).ravel()  # diag(D D^T)
+        shared_noise = scipy.sparse.csr_array(row_noise @ row_noise.T)  # C = D D^T, banded
+        own = shared_noise.diagonal()
         typical = float(np.median(own[rows])) if rows.size else 1.0
 
     # Columns with the same inliers share their leverages (on clean data, most do).
@@ -212,7 +213,7 @@ def _leverage_corrected(theta, r, keep, delta, suspect, row_noise=None, cache=No
         # Huber's clipped score) that of a prediction.
         w = _hat_factor(g)  # H = (w a_in^T)^T (w a_in^T)
         q = w @ a[inl].T
-        spread = np.sqrt(_correlated_share(q, row_noise[at], w @ unit.T, row_noise, own) / typical)
+        spread = np.sqrt(_correlated_share(q, shared_noise[at], at, w @ unit.T, own) / typical)
         # Kept suspects: also judged by the model fitted without them (deleted), the
         # larger of the two.
         rest = np.maximum(1.0 - np.einsum("ij,ij->j", q, q), np.finfo(float).eps)
@@ -281,10 +282,10 @@ class _LeverageCache:
     A column is factorised afresh when it has no entry, when the rows changed since its
     last factorisation exceed :data:`LEVERAGE_UPDATE_SHARE` of the terms, when ``K`` is
     nearly singular (:data:`LEVERAGE_PIVOT`) or when an updated inlier's leverage leaves
-    ``[0, 1]``; it is not cached when its Gram matrix is ill-conditioned
-    (:data:`LEVERAGE_RCOND`; the caller's pseudo-inverse then decides) or the entries
-    would exceed :data:`LEVERAGE_CACHE_SIZE`, and then not for the rest of the screen.
-    The leverages agree with a fresh computation to within the rounding the condition
+    ``[0, 1]``.  It is not cached when its Gram matrix is ill-conditioned
+    (:data:`LEVERAGE_RCOND`; the caller's pseudo-inverse then decides, for the rest of
+    the screen) or when the entries would exceed :data:`LEVERAGE_CACHE_SIZE`.  The
+    leverages agree with a fresh computation to within the rounding the condition
     number allows.
     """
 
@@ -396,15 +397,18 @@ def _hat_factor(gram):
     return (vecs[:, big] / np.sqrt(vals[big])).T
 
 
-def _correlated_share(q, d_in, z, d, own) -> np.ndarray:
+def _correlated_share(q, c_in, at, z, own) -> np.ndarray:
     """The variance that correlated noise leaves in each residual of a least-squares fit
-    on the inliers (hat matrix ``q^T q``, q: rank x inliers, their noise factor
-    ``d_in``, sparse inliers x sources): for a row with ``z = w a^T``, noise factor ``d``
-    (sparse) and ``own = |d|^2``, ``|d|^2 - 2 z^T q D_in d^T + z^T (q D_in)(q D_in)^T z``
-    (for the inliers themselves, ``diag((I - H) C (I - H))``, ``C = D D^T``)."""
-    qd = np.asarray((d_in.T @ q.T).T)  # q D_in: rank x sources
-    cross = np.einsum("ij,ij->j", z, np.asarray((d @ qd.T).T))
-    inner = np.einsum("ij,ij->j", z, (qd @ qd.T) @ z)
+    on the inliers ``at`` (hat matrix ``q^T q``, q: rank x inliers), the rows' noise
+    ``D e`` with covariance ``C = D D^T`` (``c_in = C[at]``, sparse inliers x rows): for
+    row ``i`` with ``z_i = w a_i^T`` and ``own_i = C_ii``, ``C_ii - 2 z_i^T q C[at, i] +
+    z_i^T q C[at, at] q^T z_i`` (for the inliers themselves, ``diag((I - H) C (I -
+    H))``).  Formed from ``C``, banded (rows share noise only where their test
+    functions share samples), not from ``D``: ``q C[at, at] q^T`` costs rank² x inliers,
+    where ``(q D_in)(q D_in)^T`` cost rank² x sources (the samples)."""
+    qc = np.asarray((c_in.T @ q.T).T)  # q C[at, :]: rank x rows
+    cross = np.einsum("ij,ij->j", z, qc)
+    inner = np.einsum("ij,ij->j", z, (qc[:, at] @ q.T) @ z)
     return np.maximum(own - 2.0 * cross + inner, np.finfo(float).eps * own)
 
 
