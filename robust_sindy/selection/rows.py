@@ -239,13 +239,13 @@ LEVERAGE_CACHE_SIZE = 3.0
 #: ``r`` rows costs about ``r / p`` of one, and every update adds its rounding).
 LEVERAGE_UPDATE_SHARE = 0.5
 
-#: Reciprocal condition number (LAPACK's 1-norm estimate, which may be smaller than the
-#: 2-norm's by up to the order of the matrix) of an inlier Gram matrix below which its
-#: leverages are not cached: an update's rounding in a leverage is about the machine
-#: epsilon over it, 2e-5 here, far below what moves a residual across the screen's
-#: cutoff.  Never below the Cholesky factor's own acceptance
-#: (:func:`~robust_sindy.solvers.newton.conditioned_cholesky` at the pseudo-inverse's
-#: cut): where that fails, the pseudo-inverse decides as without the cache.
+#: Reciprocal condition number of an inlier Gram matrix below which its leverages are
+#: not cached: an update's rounding in a leverage is about the machine epsilon over it,
+#: 2e-5 here, far below what moves a residual across the screen's cutoff.  Judged as
+#: :func:`~robust_sindy.solvers.newton.conditioned_cholesky` judges its cut (LAPACK's
+#: 1-norm estimate at least this, or where the estimate cannot tell, the eigenvalues at
+#: least this over ``CHOLESKY_MARGIN``), and never below the pseudo-inverse's cut: where
+#: that fails, the pseudo-inverse decides as without the cache.
 LEVERAGE_RCOND = 1e-11
 
 #: Smallest eigenvalue magnitude (relative to the largest, at least 1) of the capacitance
@@ -332,12 +332,9 @@ class _LeverageCache:
         return new.leverage
 
     def _fresh(self, member, g):
-        c, info = scipy.linalg.lapack.dpotrf(g, lower=True, clean=False)
-        if info != 0:
-            return None
-        rcond, info = scipy.linalg.lapack.dpocon(c, np.abs(g).sum(axis=0).max(), uplo="L")
-        least = max(LEVERAGE_RCOND, CHOLESKY_MARGIN * g.shape[0] * np.finfo(float).eps)
-        if info != 0 or not rcond >= least:
+        cut = max(LEVERAGE_RCOND / CHOLESKY_MARGIN, g.shape[0] * np.finfo(float).eps)
+        c = conditioned_cholesky(g, cut)
+        if c is None:
             return None
         z = scipy.linalg.solve_triangular(c, self.scaled.T, lower=True, check_finite=False)
         leverage = np.einsum("ij,ij->j", z, z)
