@@ -38,9 +38,10 @@ def test_one_case_scores_ours_and_a_peer_on_the_same_data(tmp_path):
 def test_the_published_table_sits_beside_the_published_rates(tmp_path):
     rows = [dict(system=f"s{i}", level=0.01, exact=i < 8, error=0.05 if i < 9 else 0.5,
                  warned=True, formulation="weak") for i in range(10)]  # fmt: skip
+    rows[9]["warned"] = False  # a silent failure
     paths = frontier.write_published(rows, tmp_path, "robust-sindy frontier --published")
     text = paths[1].read_text()
-    assert "| 1 % | 90 % (10 systems) | 80 % | 77 % |" in text
+    assert "| 1 % | 90 % (10 systems) | 80 % | 8 of 8 | 1 of 2 | 77 % |" in text
     assert np.isclose(frontier.PUBLISHED[0.01], 0.77)
 
 

@@ -733,17 +733,82 @@ def test_uncertified_path_points_warn():
     assert not p.converged.all()
 
 
-def test_the_selections_own_refits_do_not_warn_only_its_chosen_point_does():
+def test_the_selections_own_refits_do_not_warn_only_its_chosen_point_does(monkeypatch):
     # On a budget too small to certify anything, the refits that score candidates (the
     # unpenalised fit of every term, the limit of the path's proposals, among them)
     # stay quiet: a warning about a fit the user never asked for has no use.  The one
-    # warning the selection gives is about the path point it chose.
+    # warning the selection gives is about the path point it chose.  (The path point by
+    # point: the compiled walk certifies its points whatever the budget.)
+    import robust_sindy.solvers.driver as driver
+
+    monkeypatch.setattr(driver, "solve_path", lambda *args, **kwargs: None)
     theta, y = random_problem(11, m=600, p=30, n=4, outliers=0.1)
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         select(theta, y, 0.5, newton_steps=0, max_iter=1)
     messages = [str(w.message) for w in caught if issubclass(w.category, rs.ConvergenceWarning)]
-    assert all(m.startswith("the path point chosen") for m in messages), messages
+    assert messages and all(m.startswith("the path point chosen") for m in messages), messages
+
+
+@pytest.mark.parametrize("seed", [3, 4, 5])
+def test_an_uncertified_chosen_point_warns_where_the_exact_point_could_choose_better(
+    monkeypatch, seed
+):
+    # The path points get a small budget (starved here); the chosen point, where left
+    # uncertified, is solved again with the full budget.  A column stays quiet only
+    # where the certified point's selection stage (checked here on the reference
+    # solver's solution) proposes the chosen support or one scoring no better; with no
+    # budget for the second solve either, every uncertified chosen point warns.
+    import robust_sindy.selection.criteria as criteria
+    import robust_sindy.solvers.driver as driver
+
+    starved = {"max_iter": 2, "newton_steps": 0}
+    monkeypatch.setattr(criteria, "pilot_budget", lambda method: dict(starved))
+    # The path point by point (the compiled walk certifies whatever the budget).
+    monkeypatch.setattr(driver, "solve_path", lambda *args, **kwargs: None)
+    theta, y = random_problem(seed, m=300, p=10, n=4, outliers=0.1)
+    delta = np.full(4, 0.3)
+
+    def run(**options):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            sel = select(theta, y, delta, **options)
+        messages = [str(w.message) for w in caught if issubclass(w.category, rs.ConvergenceWarning)]
+        uncertified = ~sel.path.converged[sel.index, np.arange(4)] & ~sel.from_subsets
+        named = set()
+        for message in messages:
+            named |= {int(v) for v in message.split("[")[1].split("]")[0].split(",")}
+        return sel, uncertified, named
+
+    sel, uncertified, named = run(max_iter=2, newton_steps=0)
+    assert uncertified.any()  # the starved path leaves chosen points uncertified
+    assert named == set(np.flatnonzero(uncertified).tolist())
+
+    sel, _, named = run()
+    stage = criteria._Stage(theta, y, delta, 0.005, "admm", None, starved)
+    for k in np.flatnonzero(uncertified):
+        exact = rs.fit(theta, y[:, k], "cvxpy", delta[k], sel.lam[k])
+        proposed = stage.column(k, exact.coef)
+        chosen = sel.coef[:, k]
+        if np.array_equal(proposed != 0, chosen != 0):
+            assert k not in named
+            continue
+        ic = [
+            criteria.information_criterion(theta, y[:, k], c, delta[k], tau=sel.tau[k])
+            for c in (proposed, chosen)
+        ]
+        if abs(ic[0] - ic[1]) > 1e-6 * abs(ic[1]):
+            assert (k in named) == (ic[0] < ic[1]), (k, ic)
+    # A chosen support that the exact point's proposal beats (one term, the weakest of
+    # the chosen model's) does not stand.
+    cols = np.flatnonzero(uncertified)
+    weak = np.zeros_like(sel.coef)
+    for k in cols:
+        j = np.flatnonzero(sel.coef[:, k])
+        j = j[np.argmin(np.abs(sel.coef[j, k]) * np.linalg.norm(theta[:, j], axis=0))]
+        weak[j, k] = sel.coef[j, k]
+    stands = criteria._confirm_points(stage, sel.path, sel.index, cols, weak, sel.tau, {})
+    assert not stands.any()
 
 
 def test_no_warning_on_clean_defaults():
