@@ -809,6 +809,13 @@ def test_an_uncertified_chosen_point_warns_where_the_exact_point_could_choose_be
         weak[j, k] = sel.coef[j, k]
     stands = criteria._confirm_points(stage, sel.path, sel.index, cols, weak, sel.tau, {})
     assert not stands.any()
+    # With the reference solver (no warm start to give it) the point is solved again
+    # alike: its own proposal stands.
+    reference = criteria._Stage(theta, y, delta, 0.005, "cvxpy", None, {})
+    own = np.zeros_like(sel.coef)
+    for k in cols:
+        own[:, k] = reference.column(k, rs.fit(theta, y[:, k], "cvxpy", delta[k], sel.lam[k]).coef)
+    assert criteria._confirm_points(reference, sel.path, sel.index, cols, own, sel.tau, {}).all()
 
 
 def test_no_warning_on_clean_defaults():

@@ -660,11 +660,13 @@ def _confirm_points(stage: _Stage, full: Path, index, cols, chosen, tau, options
     points, which the path's budget may not finish; the candidates are scored on their
     own certified refits whatever point proposed them."""
     lam = full.lams[index[cols], cols]
+    if stage.method == "admm":
+        options = {**options, "warm_start": full.coef[index[cols], :, cols].T}
     with warnings.catch_warnings():
         warnings.simplefilter("ignore", ConvergenceWarning)
         res = fit(
             stage.theta, stage.y[:, cols], stage.method, stage.delta[cols], lam,
-            solver=stage.solver, **{**options, "warm_start": full.coef[index[cols], :, cols].T},
+            solver=stage.solver, **options,
         )  # fmt: skip
     coef = np.asarray(res.coef, dtype=float).reshape(stage.theta.shape[1], cols.size)
     out = np.zeros(cols.size, dtype=bool)
