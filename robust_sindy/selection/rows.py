@@ -295,6 +295,7 @@ class _LeverageCache:
         self.theta = theta
         self.scaled = theta / self.norms
         self.moved = np.zeros(0, dtype=int)
+        self.changed = np.zeros(theta.shape[0], dtype=bool)  # self.moved as a mask
         self.before = np.zeros((0, theta.shape[1]))
         self.entries: dict[int, _Leverages] = {}
         self.refused: set[int] = set()
@@ -305,8 +306,10 @@ class _LeverageCache:
         last call's are updated in every column."""
         if theta is self.theta:
             self.moved = np.zeros(0, dtype=int)
+            self.changed = np.zeros(theta.shape[0], dtype=bool)
             return
-        self.moved = np.flatnonzero((theta != self.theta).any(axis=1))
+        self.changed = (theta != self.theta).any(axis=1)
+        self.moved = np.flatnonzero(self.changed)
         self.before = self.scaled[self.moved]
         self.theta = theta
         self.scaled = theta / self.norms
@@ -345,9 +348,7 @@ class _LeverageCache:
         return _Leverages(member.copy(), inverse, leverage, 0)
 
     def _update(self, entry: _Leverages, member):
-        a, moved = self.scaled, self.moved
-        changed = np.zeros(member.size, dtype=bool)
-        changed[moved] = True
+        a, moved, changed = self.scaled, self.moved, self.changed
         left = np.flatnonzero(entry.member & (~member | changed))
         joined = np.flatnonzero(member & (~entry.member | changed))
         r = left.size + joined.size
