@@ -17,6 +17,7 @@ No command writes into the package's committed results unless ``--out`` points t
 from __future__ import annotations
 
 import argparse
+import contextlib
 import os
 import sys
 from pathlib import Path
@@ -229,7 +230,17 @@ def _levels(text: str) -> tuple[float, ...]:
 
 def _fit(args, parser) -> int:
     from . import fit_command
+    from .parallel import scheduler
 
+    with contextlib.ExitStack() as stack:
+        try:
+            stack.enter_context(scheduler(args.scheduler))
+        except (ValueError, ImportError) as exc:
+            parser.exit(2, f"robust-sindy fit: error: --scheduler: {exc}\n")
+        return _fit_job(args, parser, fit_command)
+
+
+def _fit_job(args, parser, fit_command) -> int:
     try:
         fit_command.run(
             args.data,
@@ -295,12 +306,12 @@ def _folder(text: str) -> str:
     return text
 
 
-def _add_scheduler(parser, what: str = "the seeds") -> None:
+def _add_scheduler(parser, what: str = "the seeds", jobs: bool = True) -> None:
     parser.add_argument(
         "--scheduler",
         metavar="ADDRESS",
         help=f"run {what} on Dask: 'local' (a LocalCluster) or a scheduler address "
-        '(needs pip install "robust-sindy[dask]"; --jobs is then ignored)',
+        '(needs pip install "robust-sindy[dask]"' + ("; --jobs is then ignored)" if jobs else ")"),
     )
 
 
@@ -367,6 +378,7 @@ def main(argv: list[str] | None = None) -> int:
         "--out", type=_folder, default="fit_results", help="output folder (./fit_results)"
     )
     fit.add_argument("--quiet", action="store_true", help="no progress bar")
+    _add_scheduler(fit, "the row screen's pilot fits, in groups of equations", jobs=False)
     data = sub.add_parser(
         "dataset",
         help="write a data set shipped with the package as CSV (lynx_hare: Hudson's Bay "

@@ -11,6 +11,8 @@ from __future__ import annotations
 
 import contextlib
 
+from .core import cluster
+
 __all__ = ["scheduler"]
 
 
@@ -32,14 +34,15 @@ def scheduler(address: str | None, n_workers: int | None = None):
 
     with contextlib.ExitStack() as stack:
         if address == "local":
-            cluster = stack.enter_context(
+            local = stack.enter_context(
                 LocalCluster(n_workers=n_workers, threads_per_worker=1, dashboard_address=None)
             )
-            client = stack.enter_context(Client(cluster))
+            client = stack.enter_context(Client(local))
         else:
             try:
                 client = stack.enter_context(Client(address, timeout="10s"))
             except OSError as exc:
                 raise ValueError(f"cannot reach the Dask scheduler at {address!r}: {exc}") from None
         stack.enter_context(parallel_config(backend="dask", n_jobs=-1))
+        stack.enter_context(cluster.using(client))
         yield client

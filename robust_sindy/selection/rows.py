@@ -19,6 +19,7 @@ import scipy.linalg
 import scipy.sparse
 import scipy.stats
 
+from ..core import cluster
 from ..core.scaling import robust_scale
 from ..core.statistics import SCALE_FLOOR, local_scale
 from ..core.threads import map_threads
@@ -463,6 +464,34 @@ class _Outcome(NamedTuple):
     delta: np.ndarray
 
 
+def _pilot_fits(theta_k, y_k, groups, start, method, budget) -> list:
+    """The pilot's fits of the columns ``groups`` (a list of arrays of column indices) on
+    the kept samples' ``theta_k`` and ``y_k``: ``(cols, delta, coef)`` per group.  The
+    fits of delta's iteration and the pilot's own fit share the library's preparation
+    and the inlier Gram matrices of their Newton steps, group by group (columns are
+    fitted independently), so that each group's matrices carry over."""
+    out = []
+    with warnings.catch_warnings(), shared_preparation():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        for cols in groups:
+            b = budget
+            begin = None if start is None else (start[0][cols], start[1][:, cols])
+            d, c = auto_delta(
+                theta_k, y_k[:, cols], method=method, return_coef=True, start=begin, **b
+            )
+            if method == "admm":
+                b = {**b, "warm_start": c}
+            fitted = fit(theta_k, y_k[:, cols], method, d, 0.0, **b).coef
+            out.append((cols, d, fitted.reshape(theta_k.shape[1], -1)))
+    return out
+
+
+def _pilot_task(item, theta, y) -> list:
+    """One worker's share of a pilot (:func:`_pilot_fits` on the samples kept)."""
+    keep, groups, start, method, budget = item
+    return _pilot_fits(theta[keep], y[keep], groups, start, method, budget)
+
+
 class _Pilots:
     """The unpenalised Huber pilots of :func:`screen_rows` and the iterations over them,
     on ``theta`` (m, p) and ``y`` (m, n), started from the samples ``first``."""
@@ -484,6 +513,17 @@ class _Pilots:
         # The pilots only propose flags: a bounded budget, their certificates not
         # required (the final fit of the kept samples is certified on its own).
         self.budget = pilot_budget(method)
+        self._sent: tuple = (None,)  # theta and y on a cluster's workers (on_cluster)
+
+    def on_cluster(self, dask_client) -> tuple:
+        """``theta`` and ``y`` sent to the workers of ``dask_client`` (once per client)."""
+        if self._sent[0] is not dask_client:
+            self._sent = (
+                dask_client,
+                cluster.scattered(dask_client, self.theta),
+                cluster.scattered(dask_client, self.y),
+            )
+        return self._sent[1:]
 
     def with_theta(self, theta) -> _Pilots:
         """The same pilots on another library matrix (of the same samples)."""
@@ -514,29 +554,25 @@ class _Pilots:
         ``delta`` (:func:`~robust_sindy.selection.auto_delta`)."""
         theta, y, method = self.theta, self.y, self.method
         theta_k, y_k = theta[keep], y[keep]
-        n = y.shape[1]
-        delta, coef = np.zeros(n), np.zeros((theta.shape[1], n))
-        # The fits of delta's iteration and the pilot's own fit share the library's
-        # preparation and the inlier Gram matrices of their Newton steps: group by group
-        # (columns are fitted independently), so that each group's matrices carry over.
+        p, n = theta.shape[1], y.shape[1]
+        delta, coef = np.zeros(n), np.zeros((p, n))
         groups = column_groups(n, theta_k.shape)
         if start is None and len(groups) > 1:  # one least-squares fit of every column
             start = least_squares_start(theta_k, y_k)
-        with warnings.catch_warnings(), shared_preparation():
-            warnings.simplefilter("ignore", ConvergenceWarning)
-            for cols in groups:
-                budget = self.budget
-                begin = None if start is None else (start[0][cols], start[1][:, cols])
-                d, c = auto_delta(
-                    theta_k, y_k[:, cols], method=method, return_coef=True, start=begin,
-                    **budget,
-                )  # fmt: skip
-                delta[cols] = d
-                if method == "admm":
-                    budget = {**budget, "warm_start": c}
-                fitted = fit(theta_k, y_k[:, cols], method, delta[cols], 0.0, **budget).coef
-                coef[:, cols] = fitted.reshape(theta.shape[1], -1)
-        del theta_k
+        dask_client = cluster.client()
+        if dask_client is None or len(groups) < 2:
+            fits = _pilot_fits(theta_k, y_k, groups, start, method, self.budget)
+            del theta_k, y_k
+        else:
+            # On a cluster: the groups in one run per worker (the same groups, so the
+            # same fits: a batched fit's iterations depend on its group's columns).
+            del theta_k, y_k
+            runs = cluster.split(len(groups), cluster.workers(dask_client))
+            items = [(keep, [groups[i] for i in run], start, method, self.budget) for run in runs]
+            done = cluster.map_tasks(dask_client, _pilot_task, items, *self.on_cluster(dask_client))
+            fits = [f for out in done for f in out]
+        for cols, d, c in fits:
+            delta[cols], coef[:, cols] = d, c
         r = y - theta @ coef
         r = r - np.median(r[keep], axis=0)
         corrected = _leverage_corrected(

@@ -94,7 +94,9 @@ def _newton_groups(columns: np.ndarray, start: np.ndarray, shape) -> list[np.nda
         return []
     w = max(int(np.count_nonzero(start[:, columns], axis=0).max()), 1)
     size = max(1, (shape[0] * shape[1]) // (w * w))
-    return [columns[i : i + size] for i in range(0, columns.size, size)]
+    # As few groups as that allows, of nearly equal sizes (which spreads them evenly
+    # over a cluster's workers: robust_sindy.core.cluster).
+    return np.array_split(columns, -(-columns.size // size))
 
 
 def _names(y: np.ndarray) -> list:
