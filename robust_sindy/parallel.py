@@ -3,8 +3,10 @@
 ``with scheduler("local"):`` starts a :class:`dask.distributed.LocalCluster` for the
 block and routes joblib (seeds of ``robust-sindy reproduce`` and ``zoo``, the models of
 :class:`~robust_sindy.EnsembleSINDy`) through it; ``scheduler("tcp://host:8786")``
-connects to a running cluster instead; ``scheduler(None)`` changes nothing.  Needs
-``pip install "robust_sindy[dask]"``.
+connects to a running cluster instead; ``scheduler(None)`` changes nothing.  Inside the
+block, :meth:`~robust_sindy.HuberSINDy.fit` also sends the row screen's pilot fits to
+the workers, in groups of equations (:mod:`robust_sindy.core.cluster`; the same model
+bit for bit).  Needs ``pip install "robust_sindy[dask]"``.
 """
 
 from __future__ import annotations
