@@ -602,7 +602,7 @@ class HuberSINDy(BaseEstimator):
             # The final selection's drops, scored as the rescoring scored the candidates.
             dropped = dropped_evidence(
                 floor.design, kept.y_s, fitted.coef != 0, final.coef != 0,
-                kept.scaler.coef_to_standard(fitted.coef), row_noise,
+                kept.scaler.coef_to_standard(fitted.coef), row_noise, tol=self.selection_tol,
             )  # fmt: skip
         refit = None
         if self.constraints is not None:

@@ -277,6 +277,12 @@ def test_the_score_contests_the_drop_of_a_true_term_and_not_of_a_spurious_one():
         tiny = RowNoise(noise.weights, noise.slopes, LibraryNoise(4, noise.columns.cols, smaller),
                         noise.target * 1e-3)  # fmt: skip
         assert np.isnan(dropped_evidence(g, y, true, support(0, 1), start, tiny)).all()
+        # A term that, put back, would contribute less than tol of its equation (the
+        # final selection's measure, under which it drops any term) does not count.
+        xi = gls_score(g, y[:, 0], true[:, 0], start[:, 0], noise, 0)[1]
+        share = abs(xi[2]) * np.linalg.norm(g[:, 2]) / np.linalg.norm(y[:, 0])
+        assert dropped_evidence(g, y, true, support(0, 1), start, noise, tol=share / 2) == lost
+        assert np.isnan(dropped_evidence(g, y, true, support(0, 1), start, noise, tol=2 * share))
 
 
 def test_the_contested_drop_bar_keeps_its_false_alarm_rate_at_every_library_size():

@@ -448,7 +448,7 @@ def search_penalty(rows: int, terms: int, kept: int) -> float:
     return 2.0 * gamma * max(np.log(max(terms - kept, 1) / (kept + 1)), 0.0)
 
 
-def dropped_evidence(g, y, before, after, start, noise: RowNoise) -> np.ndarray:
+def dropped_evidence(g, y, before, after, start, noise: RowNoise, tol: float = 0.0) -> np.ndarray:
     """Per equation whose support ``after`` (bool, p x n: the model reported) left out
     terms of ``before`` (the support the rescoring chose), the most that putting one of
     them back lowers the score, where the states' noise explains the residuals of both
@@ -464,12 +464,20 @@ def dropped_evidence(g, y, before, after, start, noise: RowNoise) -> np.ndarray:
     :func:`rescore_supports`) and :func:`search_penalty` for the library's candidates
     (the rescoring's search took the term as the best of all of them).  ``start`` (p,
     n, standardised) starts the fits.  Positive: the score, under the noise the terms
-    carry, prefers that term in the model."""
+    carry, prefers that term in the model.
+
+    A term that, put back, would contribute less than ``tol`` of the equation
+    (``|xi_j| |g_j| / |y|``, the final selection's measure and its ``selection_tol``,
+    under which it drops any term) is not counted: kept, it would be dropped again.  On
+    nearly noise-free weak rows, terms of a millionth of their equation lower the
+    chi-square by tens, fitted to the quadrature's error."""
     rows = g.shape[0]
     bound = NOISE_EXPLAINS * rows
     terms = int(np.count_nonzero(np.any(g != 0, axis=0)))
+    col = np.linalg.norm(g, axis=0)
     out = np.full(y.shape[1], np.nan)
     for k in np.flatnonzero(np.any(before & ~after, axis=0)):
+        least = tol * np.linalg.norm(y[:, k])
         reported = gls_score(g, y[:, k], after[:, k], start[:, k], noise, k)[0]
         if not reported <= bound:
             continue
@@ -478,8 +486,8 @@ def dropped_evidence(g, y, before, after, start, noise: RowNoise) -> np.ndarray:
         for j in np.flatnonzero(before[:, k] & ~after[:, k]):
             back = after[:, k].copy()
             back[j] = True
-            chi2 = gls_score(g, y[:, k], back, start[:, k], noise, k)[0]
-            if chi2 <= bound:
+            chi2, xi = gls_score(g, y[:, k], back, start[:, k], noise, k)
+            if chi2 <= bound and abs(xi[j]) * col[j] >= least:
                 gains.append((reported - chi2) / max(1.0, chi2 / rows) - penalty)
         if gains:
             out[k] = max(gains)
