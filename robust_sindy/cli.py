@@ -229,7 +229,6 @@ def _levels(text: str) -> tuple[float, ...]:
 
 
 def _fit(args, parser) -> int:
-    from . import fit_command
     from .parallel import scheduler
 
     with contextlib.ExitStack() as stack:
@@ -237,10 +236,12 @@ def _fit(args, parser) -> int:
             stack.enter_context(scheduler(args.scheduler))
         except (ValueError, ImportError) as exc:
             parser.exit(2, f"robust-sindy fit: error: --scheduler: {exc}\n")
-        return _fit_job(args, parser, fit_command)
+        return _fit_job(args, parser)
 
 
-def _fit_job(args, parser, fit_command) -> int:
+def _fit_job(args, parser) -> int:
+    from . import fit_command
+
     try:
         fit_command.run(
             args.data,

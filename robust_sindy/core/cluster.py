@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import contextlib
 import contextvars
-import math
+
+import numpy as np
 
 from .blas import one_thread
 
@@ -59,8 +60,7 @@ def map_tasks(dask_client, func, items, *args) -> list:
     return dask_client.gather(futures)
 
 
-def split(k: int, parts: int) -> list[range]:
-    """``range(k)`` in ``parts`` contiguous runs of nearly equal length (none empty)."""
-    parts = max(1, min(parts, k))
-    size = math.ceil(k / parts)
-    return [range(i, min(i + size, k)) for i in range(0, k, size)]
+def split(k: int, parts: int) -> list[np.ndarray]:
+    """``0, ..., k - 1`` in ``min(parts, k)`` contiguous runs whose lengths differ by at
+    most one (none empty)."""
+    return np.array_split(np.arange(k), max(1, min(parts, k)))
