@@ -124,3 +124,73 @@ def test_the_selection_is_the_same_on_one_thread_and_on_several(monkeypatch):
     assert np.array_equal(several.scores, one.scores, equal_nan=True)
     assert np.array_equal(several.subset_scores, one.subset_scores, equal_nan=True)
     assert several.subsets.shape[0] > 0  # the subset search ran
+
+
+def test_groups_of_equations_run_side_by_side_with_the_same_numbers(monkeypatch):
+    """Where the Newton iteration takes the equations in several groups (their Gram
+    matrices bounded by the library's memory), the fast path's fits and the row screen's
+    pilots run the groups side by side: the same numbers as one after another."""
+    from robust_sindy import fit
+    from robust_sindy.selection.rows import screen_rows
+
+    theta, y = random_problem(3, m=150, p=60, n=5, outliers=0.1)
+    assert len(_driver.column_groups(5, theta.shape)) >= 2
+    start = np.ones(150, dtype=bool)
+    start[::29] = False
+    monkeypatch.setattr(_driver, "USE_KERNEL", False)  # the NumPy Newton iteration
+    handed = []
+    run = _threads._run
+    monkeypatch.setattr(_threads, "_run", lambda f, i: (handed.append(f.__name__), run(f, i))[1])
+    out = []
+    for k in (3, 1):
+        monkeypatch.setattr(_threads, "threads", lambda k=k: k)
+        with one_thread():
+            out.append((fit(theta, y, delta=0.3, lam=0.0), screen_rows(theta, y, start=start)))
+    (f3, s3), (f1, s1) = out
+    assert np.array_equal(f3.coef, f1.coef)
+    assert np.array_equal(f3.converged, f1.converged)
+    assert np.array_equal(s3.outliers, s1.outliers)
+    assert np.array_equal(s3.scale, s1.scale)
+    assert np.array_equal(s3.pilot[1], s1.pilot[1])
+    assert handed.count("run_group") >= 2 and handed.count("one") >= 2  # in threads
+
+
+def test_states_noise_and_local_scales_are_the_same_on_one_thread_and_on_several(monkeypatch):
+    """Each state's library noise (central differences of the library) and the moving
+    robust scales of residuals with entries left out run side by side: the same model
+    and diagnostics as in one thread."""
+    import warnings
+
+    from robust_sindy import HuberSINDy, IdentificationWarning, PolynomialLibrary
+    from robust_sindy.core.statistics import local_scale
+    from robust_sindy.selection.bias import noise_columns
+
+    rng = np.random.default_rng(2)
+    values = rng.standard_normal((3000, 4))
+    values[rng.random(values.shape) < 0.05] = np.nan
+    t = np.linspace(0.0, 30.0, 1200)
+    x = np.column_stack([np.sin(t), np.cos(t), np.sin(0.5 * t) * np.cos(t)])
+    x = x + 0.01 * rng.standard_normal(x.shape)
+    x[rng.choice(1200, 30, replace=False), rng.integers(0, 3, 30)] += 3.0  # glitches
+    handed = []
+    run = _threads._run
+    monkeypatch.setattr(_threads, "_run", lambda f, i: (handed.append(f.__name__), run(f, i))[1])
+    out = []
+    temporal = temporal_screen(x, t)
+    library = PolynomialLibrary(degree=3).fit(x)
+    coef = rng.standard_normal((library.n_output_features_, 2))
+    for k in (3, 1):
+        monkeypatch.setattr(_threads, "threads", lambda k=k: k)
+        with one_thread():
+            with warnings.catch_warnings():
+                warnings.simplefilter("ignore", IdentificationWarning)
+                model = HuberSINDy().fit(x, t)
+            noise = noise_columns(library, x, temporal, 1.0)
+            out.append(
+                (local_scale(values, 12), model.coef_, model.screening_.outliers,
+                 *noise.values, noise.carried(coef))
+            )  # fmt: skip
+    for a, b in zip(*out, strict=True):
+        assert np.array_equal(a, b)
+    assert np.isnan(values).any() and np.all(np.isfinite(out[0][0]))
+    assert {"state", "column"} <= set(handed)

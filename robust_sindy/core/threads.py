@@ -2,10 +2,11 @@
 
 The compiled kernels and BLAS release the GIL, so independent pieces of work (the path
 walk of one target column, the local fits of one state, one equation's inlier Gram
-matrix, Cholesky solve or leverages) run side by side in threads.  Each piece is
-computed exactly as it would be alone with BLAS on one thread, so the results do not
-depend on the number of threads (BLAS itself on several threads may round some products
-differently in the last place).
+matrix, Cholesky solve or leverages, a group of equations' Newton fits, one state's
+library noise) run side by side in threads.  Each piece is computed exactly as it
+would be alone with BLAS on one thread, so the results do not depend on the number
+of threads (BLAS itself on several threads may round some products differently in the
+last place).
 
 The threads are those of the cores this process may use, at most ``OMP_NUM_THREADS``
 when it is set (joblib's worker processes set it, so that parallel fits do not

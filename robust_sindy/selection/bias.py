@@ -26,6 +26,7 @@ from __future__ import annotations
 
 import numpy as np
 
+from ..core.threads import map_threads
 from .refit import refit_column
 from .significance import VISIBLE, robust_t
 
@@ -143,7 +144,10 @@ class LibraryNoise:
     def per_state(self, coef) -> list[np.ndarray]:
         """``N_k @ coef`` per state, (m,) or (m, n) for ``coef`` (p,) or (p, n)."""
         coef = np.asarray(coef, dtype=float)
-        return [v @ coef[c] for c, v in zip(self.cols, self.values, strict=True)]
+        pairs = list(zip(self.cols, self.values, strict=True))
+        width = coef.shape[1] if coef.ndim == 2 else 1
+        flops = self.shape[0] * self.p * width / max(len(self), 1)  # per state, about
+        return map_threads(lambda cv: cv[1] @ coef[cv[0]], pairs, flops=flops)
 
     def reaching(self, coef) -> list[tuple[int, np.ndarray]]:
         """``(k, N_k @ coef)`` for ``coef`` (p,), the states whose noise it can reach:
@@ -204,22 +208,24 @@ def noise_columns(library, z, temporal, theta_scale) -> LibraryNoise | None:
     base = z.copy()
     n = temporal.scale.size
     base[:, :n] = temporal.repaired
-    cols, values = [], []
-    p = 0
-    for k, sigma in enumerate(temporal.scale):
+
+    def state(k):  # each state's central difference, side by side (the same values)
+        sigma = temporal.scale[k]
         step = 1e-4 * max(float(np.sqrt(np.mean(base[:, k] ** 2))), np.finfo(float).tiny)
         up, down = base.copy(), base.copy()
         up[:, k] += step
         down[:, k] -= step
         grad = library.transform(up)
+        del up
         grad -= library.transform(down)
         p = grad.shape[1]
         on = np.flatnonzero(np.any(grad != 0, axis=0))
-        cols.append(on)
         scale = np.broadcast_to(np.asarray(theta_scale, dtype=float), (p,))[on]
-        values.append(grad[:, on] * (sigma / (2 * step)) / scale)
-        del grad
-    return LibraryNoise(p, cols, values)
+        return p, on, grad[:, on] * (sigma / (2 * step)) / scale
+
+    parts = map_threads(state, range(n))
+    p = parts[0][0] if parts else 0
+    return LibraryNoise(p, [on for _, on, _ in parts], [v for _, _, v in parts])
 
 
 def library_noise(noise, theta_kept) -> tuple[np.ndarray, float]:

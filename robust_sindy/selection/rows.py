@@ -469,11 +469,11 @@ def _pilot_fits(theta_k, y_k, groups, start, method, budget) -> list:
     the kept samples' ``theta_k`` and ``y_k``: ``(cols, delta, coef)`` per group.  The
     fits of delta's iteration and the pilot's own fit share the library's preparation
     and the inlier Gram matrices of their Newton steps, group by group (columns are
-    fitted independently), so that each group's matrices carry over."""
-    out = []
-    with warnings.catch_warnings(), shared_preparation():
-        warnings.simplefilter("ignore", ConvergenceWarning)
-        for cols in groups:
+    fitted independently), so that each group's matrices carry over; the groups run
+    side by side on the machine's cores, each in its own block, as it would alone."""
+
+    def one(cols):  # each group in its own block: the groups run side by side
+        with shared_preparation():
             b = budget
             begin = None if start is None else (start[0][cols], start[1][:, cols])
             d, c = auto_delta(
@@ -482,8 +482,11 @@ def _pilot_fits(theta_k, y_k, groups, start, method, budget) -> list:
             if method == "admm":
                 b = {**b, "warm_start": c}
             fitted = fit(theta_k, y_k[:, cols], method, d, 0.0, **b).coef
-            out.append((cols, d, fitted.reshape(theta_k.shape[1], -1)))
-    return out
+            return cols, d, fitted.reshape(theta_k.shape[1], -1)
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", ConvergenceWarning)
+        return map_threads(one, groups)
 
 
 def _pilot_task(item, theta, y) -> list:
