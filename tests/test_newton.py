@@ -712,6 +712,48 @@ def test_fits_in_a_shared_preparation_share_the_library_and_its_inlier_grams(mon
     assert problem._SHARED.get() is None  # the block left nothing behind
 
 
+def test_blocks_started_from_one_preparation_share_it_and_keep_their_own_grams(monkeypatch):
+    # Blocks of shared_preparation started from preparations(theta) (in the row screen's
+    # pilots, one per group of equations, side by side in threads) prepare the library
+    # once between them, each carrying its own inlier Gram matrices, and fit as a block
+    # of its own would, bit for bit.
+    from robust_sindy.core import threads
+    from robust_sindy.solvers import problem
+
+    monkeypatch.setattr(driver, "USE_KERNEL", False)  # the NumPy iteration keeps them
+    rng = np.random.default_rng(3)
+    theta = rng.normal(size=(2000, 10))
+    y = theta @ rng.normal(size=(10, 4)) + 0.1 * rng.standard_t(2, size=(2000, 4))
+    prepared = []
+    real = problem._prepare
+
+    def counted(*args):
+        prepared.append(real(*args))
+        return prepared[-1]
+
+    monkeypatch.setattr(problem, "_prepare", counted)
+
+    def group(cols, start=None):
+        with problem.shared_preparation(start):
+            fits = [rs.fit(theta, y[:, cols], "admm", d, 0.0).coef for d in (0.2, 0.19)]
+            block = problem._SHARED.get()
+            return fits, next(iter(block.values()))[1]
+
+    groups = [[0, 1], [2, 3]]
+    own = [group(cols) for cols in groups]
+    assert len(prepared) == 2  # a block of its own prepares the library itself
+    start = problem.preparations(theta)
+    monkeypatch.setattr(threads, "threads", lambda: 2)
+    shared = threads.map_threads(lambda cols: group(cols, start), groups)
+    assert len(prepared) == 3  # once for both blocks
+    (_, pa), (_, pb) = shared
+    assert pa.G is pb.G and pa.carry is not pb.carry and pa.carry and pb.carry
+    assert not next(iter(start.values()))[1].carry  # the start itself carries nothing
+    for (f_own, _), (f_shared, _) in zip(own, shared, strict=True):
+        for a, b in zip(f_own, f_shared, strict=True):
+            assert np.array_equal(a, b)
+
+
 def test_a_gram_cache_with_a_budget_lets_go_of_the_matrices_used_longest_ago():
     # Named columns two at a time, 20 x 20 matrices (400 entries each) and a budget of
     # 1000 entries: after each call at most the two matrices of that call and none

@@ -33,7 +33,7 @@ from ..fitting import (
 )
 from ..solvers.driver import column_groups
 from ..solvers.newton import CHOLESKY_MARGIN, conditioned_cholesky, inlier_gram
-from ..solvers.problem import shared_preparation
+from ..solvers.problem import preparations, shared_preparation
 from ..timeseries.trajectories import segments_of
 from .bias import LibraryNoise, carried_noise, residual_noise_factor
 from .lam_path import pilot_budget
@@ -472,8 +472,11 @@ def _pilot_fits(theta_k, y_k, groups, start, method, budget) -> list:
     fitted independently), so that each group's matrices carry over; the groups run
     side by side on the machine's cores, each in its own block, as it would alone."""
 
+    # The library's preparation formed once for the groups' blocks (the fast path's).
+    prepared = preparations(theta_k) if method == "admm" and len(groups) > 1 else None
+
     def one(cols):  # each group in its own block: the groups run side by side
-        with shared_preparation():
+        with shared_preparation(prepared):
             b = budget
             begin = None if start is None else (start[0][cols], start[1][:, cols])
             d, c = auto_delta(

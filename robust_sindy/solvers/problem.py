@@ -14,7 +14,7 @@ from __future__ import annotations
 
 import contextlib
 from contextvars import ContextVar
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 import scipy.linalg
@@ -29,6 +29,7 @@ __all__ = [
     "ScaledColumns",
     "SolverOutput",
     "column_objective",
+    "preparations",
     "prepare",
     "shared_preparation",
     "solve_sym",
@@ -165,25 +166,38 @@ _SHARED: ContextVar[dict | None] = ContextVar("robust_sindy_shared_preparation",
 
 
 @contextlib.contextmanager
-def shared_preparation():
+def shared_preparation(start: dict | None = None):
     """Within the block, the fast path's fits of the same library array (the same
     object, not modified inside the block) share its preparation: the equilibration and
     Gram matrix are formed once, and the Newton iteration's inlier Gram matrices carry
     over from one fit to the next, updated by the samples that changed sides (a pilot's
     fits of one set of samples at successive thresholds).  Per thread (a context
-    variable): fits in other threads prepare their own."""
-    token = _SHARED.set({})
+    variable): fits in other threads prepare their own, or start from the same
+    preparations ``start`` (:func:`preparations`), each block with its own inlier Gram
+    matrices."""
+    own = {key: (theta, replace(p, carry={})) for key, (theta, p) in (start or {}).items()}
+    token = _SHARED.set(own)
     try:
         yield
     finally:
         _SHARED.reset(token)
 
 
+def preparations(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> dict:
+    """The preparation of ``theta`` (:func:`prepare`), formed once, for blocks of
+    :func:`shared_preparation` in several threads to start from."""
+    return {_key(theta, equilibrate, kappa): (theta, _prepare(theta, equilibrate, kappa))}
+
+
+def _key(theta, equilibrate, kappa) -> tuple:
+    return (id(theta), bool(equilibrate), float(kappa))
+
+
 def prepare(theta: np.ndarray, *, equilibrate: bool = True, kappa: float = 1.0) -> Prepared:
     """Equilibrate ``theta`` and form its Gram matrix once (pass as ``prepared``); inside
     :func:`shared_preparation`, once per array for the whole block."""
     shared = _SHARED.get()
-    key = (id(theta), bool(equilibrate), float(kappa))
+    key = _key(theta, equilibrate, kappa)
     if shared is not None and key in shared and shared[key][0] is theta:
         return shared[key][1]
     prepared = _prepare(theta, equilibrate, kappa)
