@@ -675,6 +675,21 @@ def test_the_compiled_line_search_finds_the_exact_minimiser_along_the_direction(
     assert kinks >= 20  # the crossing draws did put the minimiser on the crossing (30)
 
 
+def _count_preparations(monkeypatch) -> list:
+    """Every preparation of a library (solvers.problem._prepare) made from now on."""
+    from robust_sindy.solvers import problem
+
+    prepared = []
+    real = problem._prepare
+
+    def counted(*args):
+        prepared.append(real(*args))
+        return prepared[-1]
+
+    monkeypatch.setattr(problem, "_prepare", counted)
+    return prepared
+
+
 def test_fits_in_a_shared_preparation_share_the_library_and_its_inlier_grams(monkeypatch):
     # Inside shared_preparation the fits of one library array prepare it once, and the
     # Newton steps of a later fit update the inlier Gram matrices the earlier fit left
@@ -687,14 +702,7 @@ def test_fits_in_a_shared_preparation_share_the_library_and_its_inlier_grams(mon
     rng = np.random.default_rng(7)
     theta = rng.normal(size=(3000, 12))
     y = theta @ rng.normal(size=(12, 3)) + 0.1 * rng.standard_t(2, size=(3000, 3))
-    prepared = []
-    real = problem._prepare
-
-    def counted(*args):
-        prepared.append(real(*args))
-        return prepared[-1]
-
-    monkeypatch.setattr(problem, "_prepare", counted)
+    prepared = _count_preparations(monkeypatch)
     deltas = [np.full(3, 0.2), np.full(3, 0.195), np.full(3, 0.19)]  # as delta settles
     alone = [rs.fit(theta, y, "admm", d, 0.0) for d in deltas]
     assert len(prepared) == 3 and all(p.carry is None for p in prepared)
@@ -724,14 +732,7 @@ def test_blocks_started_from_one_preparation_share_it_and_keep_their_own_grams(m
     rng = np.random.default_rng(3)
     theta = rng.normal(size=(2000, 10))
     y = theta @ rng.normal(size=(10, 4)) + 0.1 * rng.standard_t(2, size=(2000, 4))
-    prepared = []
-    real = problem._prepare
-
-    def counted(*args):
-        prepared.append(real(*args))
-        return prepared[-1]
-
-    monkeypatch.setattr(problem, "_prepare", counted)
+    prepared = _count_preparations(monkeypatch)
 
     def group(cols, start=None):
         with problem.shared_preparation(start):

@@ -15,6 +15,28 @@ from robust_sindy.timeseries.temporal import temporal_screen
 from .conftest import random_problem
 
 
+def _spy_on_threads(monkeypatch) -> list:
+    """The names of the functions handed to map_threads' threads, as they run."""
+    handed = []
+    run = _threads._run
+    monkeypatch.setattr(_threads, "_run", lambda f, i: (handed.append(f.__name__), run(f, i))[1])
+    return handed
+
+
+def _fit_and_screen_in_threads(monkeypatch, theta, y, start) -> list:
+    """An unpenalised fast-path fit and the row screen of ``theta``, ``y`` in three
+    threads, then in one (BLAS on one thread in both): ``[(fit, screen), (fit, screen)]``."""
+    from robust_sindy import fit
+    from robust_sindy.selection.rows import screen_rows
+
+    out = []
+    for k in (3, 1):
+        monkeypatch.setattr(_threads, "threads", lambda k=k: k)
+        with one_thread():
+            out.append((fit(theta, y, delta=0.3, lam=0.0), screen_rows(theta, y, start=start)))
+    return out
+
+
 def test_map_threads_keeps_the_order_and_runs_nested_calls_inline(monkeypatch):
     monkeypatch.setattr(_threads, "MAX_THREADS", 2)
     monkeypatch.setattr(_threads, "threads", lambda: 2)
@@ -77,23 +99,13 @@ def test_newton_and_the_row_screen_are_the_same_on_one_thread_and_on_several(mon
     # leverages) handed to threads, however small: the same numbers as in one thread
     # (BLAS on one thread in both, as in the threads: BLAS itself may round differently
     # on several).
-    from robust_sindy import fit
-    from robust_sindy.selection.rows import screen_rows
-
     theta, y = random_problem(7, m=600, p=60, n=4, outliers=0.1)
     start = np.ones(600, dtype=bool)
     start[::37] = False
     monkeypatch.setattr(_threads, "THREAD_WORK", 0.0)
     monkeypatch.setattr(_driver, "USE_KERNEL", False)  # the NumPy Newton iteration
-    handed = []
-    run = _threads._run
-    monkeypatch.setattr(_threads, "_run", lambda f, i: (handed.append(f.__name__), run(f, i))[1])
-    runs = []
-    for k in (3, 1):
-        monkeypatch.setattr(_threads, "threads", lambda k=k: k)
-        with one_thread():
-            runs.append((fit(theta, y, delta=0.3, lam=0.0), screen_rows(theta, y, start=start)))
-    (f3, s3), (f1, s1) = runs
+    handed = _spy_on_threads(monkeypatch)
+    (f3, s3), (f1, s1) = _fit_and_screen_in_threads(monkeypatch, theta, y, start)
     assert np.array_equal(f3.coef, f1.coef)
     assert np.array_equal(s3.outliers, s1.outliers)
     assert np.array_equal(s3.scale, s1.scale)
@@ -130,23 +142,13 @@ def test_groups_of_equations_run_side_by_side_with_the_same_numbers(monkeypatch)
     """Where the Newton iteration takes the equations in several groups (their Gram
     matrices bounded by the library's memory), the fast path's fits and the row screen's
     pilots run the groups side by side: the same numbers as one after another."""
-    from robust_sindy import fit
-    from robust_sindy.selection.rows import screen_rows
-
     theta, y = random_problem(3, m=150, p=60, n=5, outliers=0.1)
     assert len(_driver.column_groups(5, theta.shape)) >= 2
     start = np.ones(150, dtype=bool)
     start[::29] = False
     monkeypatch.setattr(_driver, "USE_KERNEL", False)  # the NumPy Newton iteration
-    handed = []
-    run = _threads._run
-    monkeypatch.setattr(_threads, "_run", lambda f, i: (handed.append(f.__name__), run(f, i))[1])
-    out = []
-    for k in (3, 1):
-        monkeypatch.setattr(_threads, "threads", lambda k=k: k)
-        with one_thread():
-            out.append((fit(theta, y, delta=0.3, lam=0.0), screen_rows(theta, y, start=start)))
-    (f3, s3), (f1, s1) = out
+    handed = _spy_on_threads(monkeypatch)
+    (f3, s3), (f1, s1) = _fit_and_screen_in_threads(monkeypatch, theta, y, start)
     assert np.array_equal(f3.coef, f1.coef)
     assert np.array_equal(f3.converged, f1.converged)
     assert np.array_equal(s3.outliers, s1.outliers)
@@ -172,9 +174,7 @@ def test_states_noise_and_local_scales_are_the_same_on_one_thread_and_on_several
     x = np.column_stack([np.sin(t), np.cos(t), np.sin(0.5 * t) * np.cos(t)])
     x = x + 0.01 * rng.standard_normal(x.shape)
     x[rng.choice(1200, 30, replace=False), rng.integers(0, 3, 30)] += 3.0  # glitches
-    handed = []
-    run = _threads._run
-    monkeypatch.setattr(_threads, "_run", lambda f, i: (handed.append(f.__name__), run(f, i))[1])
+    handed = _spy_on_threads(monkeypatch)
     out = []
     temporal = temporal_screen(x, t)
     library = PolynomialLibrary(degree=3).fit(x)
