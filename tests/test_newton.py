@@ -557,14 +557,20 @@ def test_the_compiled_iteration_certifies_nearly_every_column_of_the_automatic_p
     assert sum(int(np.count_nonzero(s)) for s in statuses) <= 0.05 * columns
 
 
+def _heavy_tailed(seed, m, p, n):
+    """A library (m, p) of Gaussian columns and n targets on it with Student-t (2
+    degrees of freedom) noise of scale 0.1."""
+    rng = np.random.default_rng(seed)
+    theta = rng.normal(size=(m, p))
+    return theta, theta @ rng.normal(size=(p, n)) + 0.1 * rng.standard_t(2, size=(m, n))
+
+
 def test_columns_in_groups_reach_the_optimum_of_one_batch(monkeypatch):
     # Many columns of an unpenalised fit on many terms: the batched Newton iteration
     # takes them in groups whose Gram matrices fit in the library's own memory; the
     # columns are independent, so the answer is the one batch's.
-    rng = np.random.default_rng(5)
-    m, p, n = 300, 40, 12
-    theta = rng.normal(size=(m, p))
-    y = theta @ rng.normal(size=(p, n)) + 0.1 * rng.standard_t(2, size=(m, n))
+    p, n = 40, 12
+    theta, y = _heavy_tailed(5, 300, p, n)
     monkeypatch.setattr(driver, "USE_KERNEL", False)
     groups = driver._newton_groups(np.arange(n), np.ones((p, n)), theta.shape)
     assert len(groups) == 2 and np.array_equal(np.concatenate(groups), np.arange(n))
@@ -699,9 +705,7 @@ def test_fits_in_a_shared_preparation_share_the_library_and_its_inlier_grams(mon
     from robust_sindy.solvers import problem
 
     monkeypatch.setattr(driver, "USE_KERNEL", False)  # the NumPy iteration keeps them
-    rng = np.random.default_rng(7)
-    theta = rng.normal(size=(3000, 12))
-    y = theta @ rng.normal(size=(12, 3)) + 0.1 * rng.standard_t(2, size=(3000, 3))
+    theta, y = _heavy_tailed(7, 3000, 12, 3)
     prepared = _count_preparations(monkeypatch)
     deltas = [np.full(3, 0.2), np.full(3, 0.195), np.full(3, 0.19)]  # as delta settles
     alone = [rs.fit(theta, y, "admm", d, 0.0) for d in deltas]
@@ -729,9 +733,7 @@ def test_blocks_started_from_one_preparation_share_it_and_keep_their_own_grams(m
     from robust_sindy.solvers import problem
 
     monkeypatch.setattr(driver, "USE_KERNEL", False)  # the NumPy iteration keeps them
-    rng = np.random.default_rng(3)
-    theta = rng.normal(size=(2000, 10))
-    y = theta @ rng.normal(size=(10, 4)) + 0.1 * rng.standard_t(2, size=(2000, 4))
+    theta, y = _heavy_tailed(3, 2000, 10, 4)
     prepared = _count_preparations(monkeypatch)
 
     def group(cols, start=None):
