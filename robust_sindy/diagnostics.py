@@ -87,7 +87,10 @@ MAX_LIBRARY_NOISE = 0.15
 class IdentificationWarning(UserWarning):
     """The data cannot vouch for the identified model (see ``HuberSINDy.diagnostics_``).
 
-    ``kind`` names the rule of :data:`RULES` that raised it (None when raised elsewhere).
+    ``kind`` names the rule of :data:`RULES` that raised it, or the check made
+    elsewhere: ``"few independent rows"`` (``formulation="weak"`` asked for on rows that
+    hold no more independent rows than the library has terms, said before the fit),
+    ``"out of core"`` (the out-of-core refit); None otherwise.
     """
 
     def __init__(self, message: str, kind: str | None = None):

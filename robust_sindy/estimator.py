@@ -773,7 +773,22 @@ class HuberSINDy(BaseEstimator):
             )
             return None, few, ""
         if self.formulation == "weak":
-            why = "weak form (formulation='weak')"
+            why = f"weak form (formulation='weak'); {rows.n_rows} {shares}"
+            if independent <= MIN_INDEPENDENT_ROWS_PER_TERM * terms:
+                # Said before the fit: its selection on such rows may take long.
+                warnings.warn(
+                    IdentificationWarning(
+                        f"the weak form's {rows.n_rows} {shares}: overlapping test "
+                        "functions share their samples' noise, and with no more "
+                        "independent rows than terms the fits on every term are "
+                        "underdetermined in effect, so the selection may keep most of "
+                        "the library (and search long from there); formulation='auto' "
+                        "would use the strong form here, or use longer records or a "
+                        "smaller library",
+                        "few independent rows",
+                    ),
+                    stacklevel=4,
+                )
         else:
             why = (
                 outliers or "weak form: states only, no outliers found by the temporal screen"

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 import robust_sindy as rs
+from robust_sindy.diagnostics import kind_of
 from robust_sindy.estimator import (
     MIN_INDEPENDENT_ROWS_PER_TERM,
     MIN_ROWS_PER_TERM,
@@ -129,9 +130,11 @@ def test_weak_form_identifies_lorenz_from_noisy_states(seed):
     data = _lorenz()
     rng = np.random.default_rng(seed)
     x = data.x + 0.02 * np.sqrt(np.mean(data.x**2, axis=0)) * rng.normal(size=data.x.shape)
-    with warnings.catch_warnings():
-        warnings.simplefilter("ignore", rs.IdentificationWarning)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always", rs.IdentificationWarning)
         model = rs.HuberSINDy(formulation="weak").fit(x, data.t)
+    # Rows enough for the library: the forced weak form does not warn of too few.
+    assert "few independent rows" not in [kind_of(w) for w in caught]
     coef = model.coef_.T
     assert np.linalg.norm(coef - TRUE) <= 0.02 * np.linalg.norm(TRUE)
     assert model.result_.converged and model.result_.kkt.max() <= 1e-8
@@ -255,6 +258,25 @@ def test_auto_takes_the_strong_form_with_fewer_independent_rows_than_terms():
     assert "independent rows for 66 terms" in fits[2000].diagnostics_.formulation_reason
 
 
+def test_weak_form_asked_for_on_too_few_independent_rows_warns_before_the_fit():
+    # The short Lorenz-96 record above (under 0.8 independent rows per term): asked for,
+    # the weak form is used, and the warning comes first (turned into an error here, it
+    # stops the fit before its selection on those rows), naming the counts.
+    from robust_sindy.flows import lorenz96_records
+
+    t, x, _, _ = lorenz96_records(10, 450, seed=3)
+    rng = np.random.default_rng(5)
+    x = x + 0.01 * np.sqrt(np.mean(x**2, axis=0)) * rng.normal(size=x.shape)
+    model = rs.HuberSINDy(library=rs.PolynomialLibrary(degree=2), formulation="weak")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", rs.IdentificationWarning)
+        with pytest.raises(rs.IdentificationWarning, match="independent rows for 66 terms") as e:
+            model.fit(x, t)
+    assert e.value.kind == "few independent rows"
+    assert "formulation='auto' would use the strong form" in str(e.value)
+    assert not hasattr(model, "coef_")
+
+
 def test_relative_noise_is_the_screen_s_level_over_the_repaired_spread():
     # Unit-free (each state's scale and offset), and glitches do not inflate the spread.
     t = np.linspace(0.0, 30.0, 3000)
@@ -312,8 +334,6 @@ def test_many_outliers_counts_the_records_entries_in_the_weak_form():
     # The weak form's n_samples counts its test functions; the share of flagged entries
     # is of the records' entries (4 % glitched here), not of entries per test function.
     import dataclasses
-
-    from robust_sindy.diagnostics import kind_of
 
     data = _lorenz(t_end=10.0)
     rng = np.random.default_rng(5)
