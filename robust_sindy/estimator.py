@@ -782,9 +782,9 @@ class HuberSINDy(BaseEstimator):
                         "functions share their samples' noise, and with no more "
                         "independent rows than terms the fits on every term are "
                         "underdetermined in effect, so the selection may keep most of "
-                        "the library (and search long from there); formulation='auto' "
-                        "would use the strong form here, or use longer records or a "
-                        "smaller library",
+                        "the library (and search long from there); use "
+                        "formulation='auto' (which takes the strong form here), longer "
+                        "records or a smaller library",
                         "few independent rows",
                     ),
                     stacklevel=4,

@@ -273,7 +273,7 @@ def test_weak_form_asked_for_on_too_few_independent_rows_warns_before_the_fit():
         with pytest.raises(rs.IdentificationWarning, match="independent rows for 66 terms") as e:
             model.fit(x, t)
     assert e.value.kind == "few independent rows"
-    assert "formulation='auto' would use the strong form" in str(e.value)
+    assert "formulation='auto' (which takes the strong form here)" in str(e.value)
     assert not hasattr(model, "coef_")
 
 
