@@ -765,26 +765,24 @@ class HuberSINDy(BaseEstimator):
             f"test functions of half width {support.samples:.0f} samples, about "
             f"{independent:.0f} independent rows for {terms} terms"
         )
-        if self.formulation == "auto" and independent <= MIN_INDEPENDENT_ROWS_PER_TERM * terms:
-            few = (
-                f"strong form: the weak form's {rows.n_rows} {shares}: overlapping test "
-                "functions share their samples' noise, and no more independent rows than "
-                "terms leave the fits on every term underdetermined (formulation='auto')"
-            )
-            return None, few, ""
+        few_rows = independent <= MIN_INDEPENDENT_ROWS_PER_TERM * terms
+        # What both the choice of ``auto`` and the warning when asked for say.
+        underdetermined = (
+            f"the weak form's {rows.n_rows} {shares}: overlapping test functions share "
+            "their samples' noise, and no more independent rows than terms leave the fits "
+            "on every term underdetermined"
+        )
+        if self.formulation == "auto" and few_rows:
+            return None, f"strong form: {underdetermined} (formulation='auto')", ""
         if self.formulation == "weak":
             why = f"weak form (formulation='weak'); {rows.n_rows} {shares}"
-            if independent <= MIN_INDEPENDENT_ROWS_PER_TERM * terms:
+            if few_rows:
                 # Said before the fit: its selection on such rows may take long.
                 warnings.warn(
                     IdentificationWarning(
-                        f"the weak form's {rows.n_rows} {shares}: overlapping test "
-                        "functions share their samples' noise, and with no more "
-                        "independent rows than terms the fits on every term are "
-                        "underdetermined in effect, so the selection may keep most of "
-                        "the library (and search long from there); use "
-                        "formulation='auto' (which takes the strong form here), longer "
-                        "records or a smaller library",
+                        f"{underdetermined}: the selection may keep most of the library "
+                        "(and search long from there); use formulation='auto' (which "
+                        "takes the strong form here), longer records or a smaller library",
                         "few independent rows",
                     ),
                     stacklevel=4,

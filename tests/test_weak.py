@@ -227,15 +227,20 @@ def test_effective_rows_count_the_supports_not_the_centres():
     assert rows(10.0, 0, 1e3).effective_rows() == pytest.approx(loose.effective_rows(), rel=1e-9)
 
 
-def test_auto_takes_the_strong_form_with_fewer_independent_rows_than_terms():
-    # Lorenz-96 with 10 states (66 terms) at 1 % noise: on a short record the weak
-    # form's overlapping test functions leave fewer independent rows than terms, and
-    # the strong form is used; on a record four times as long, the weak form.
+def _lorenz96_noisy():
+    """Lorenz-96 with 10 states (66 degree-2 terms), 2000 samples, 1 % noise."""
     from robust_sindy.flows import lorenz96_records
 
     t, x, _, _ = lorenz96_records(10, 2000, seed=3)
     rng = np.random.default_rng(5)
-    x = x + 0.01 * np.sqrt(np.mean(x**2, axis=0)) * rng.normal(size=x.shape)
+    return t, x + 0.01 * np.sqrt(np.mean(x**2, axis=0)) * rng.normal(size=x.shape)
+
+
+def test_auto_takes_the_strong_form_with_fewer_independent_rows_than_terms():
+    # Lorenz-96 with 10 states (66 terms) at 1 % noise: on a short record the weak
+    # form's overlapping test functions leave fewer independent rows than terms, and
+    # the strong form is used; on a record four times as long, the weak form.
+    t, x = _lorenz96_noisy()
     library = rs.PolynomialLibrary(degree=2)
     fits, independent = {}, {}
     for n in (450, 2000):
@@ -262,16 +267,12 @@ def test_weak_form_asked_for_on_too_few_independent_rows_warns_before_the_fit():
     # The short Lorenz-96 record above (under 0.8 independent rows per term): asked for,
     # the weak form is used, and the warning comes first (turned into an error here, it
     # stops the fit before its selection on those rows), naming the counts.
-    from robust_sindy.flows import lorenz96_records
-
-    t, x, _, _ = lorenz96_records(10, 450, seed=3)
-    rng = np.random.default_rng(5)
-    x = x + 0.01 * np.sqrt(np.mean(x**2, axis=0)) * rng.normal(size=x.shape)
+    t, x = _lorenz96_noisy()
     model = rs.HuberSINDy(library=rs.PolynomialLibrary(degree=2), formulation="weak")
     with warnings.catch_warnings():
         warnings.simplefilter("error", rs.IdentificationWarning)
         with pytest.raises(rs.IdentificationWarning, match="independent rows for 66 terms") as e:
-            model.fit(x, t)
+            model.fit(x[:450], t[:450])
     assert e.value.kind == "few independent rows"
     assert "formulation='auto' (which takes the strong form here)" in str(e.value)
     assert not hasattr(model, "coef_")
