@@ -2,9 +2,9 @@
 
 Every continuous-time system of `dysts <https://github.com/williamgilpin/dysts>`_ with at
 most four states whose right-hand side is a polynomial of degree at most three
-(:func:`polynomial_systems`), simulated locally (:func:`simulate_system`): the systems
-of the zoo (:mod:`robust_sindy.zoo`) and of the noise frontier
-(:mod:`robust_sindy.frontier`).
+(:func:`polynomial_systems`, or one by name: :func:`polynomial_system`), simulated
+locally (:func:`simulate_system`): the systems of the zoo (:mod:`robust_sindy.zoo`) and
+of the noise frontier (:mod:`robust_sindy.frontier`).
 
 * The true coefficients come from the right-hand side itself: an exact least-squares fit
   of the full monomial library on random points (relative residual below ``1e-9``), the
@@ -20,7 +20,7 @@ Needs dysts (the extra ``zoo``).
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from itertools import combinations_with_replacement
 
 import numpy as np
@@ -30,6 +30,7 @@ __all__ = [
     "ZooSystem",
     "lorenz96",
     "lorenz96_records",
+    "polynomial_system",
     "polynomial_systems",
     "simulate_system",
     "write_rows",
@@ -50,13 +51,29 @@ class ZooSystem:
     coef: np.ndarray  # (p, n) true coefficients
     ic: np.ndarray
     dt: float
+    _factor_cache: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def library_matrix(self, x: np.ndarray) -> np.ndarray:
+        """The monomials at the states ``x`` (m, n): each the product of its factors
+        from the left, starting from 1 (a factor of 1 pads the shorter ones, exactly)."""
+        factors = self._factors()
+        padded = np.ones((x.shape[0], self.n_states + 1))
+        padded[:, : self.n_states] = x
         out = np.ones((x.shape[0], len(self.powers)))
-        for j, combo in enumerate(self.powers):
-            for i in combo:
-                out[:, j] *= x[:, i]
+        for k in range(factors.shape[1]):
+            out *= padded[:, factors[:, k]]
         return out
+
+    def _factors(self) -> np.ndarray:
+        """The state index of each factor of each monomial (p, degree), ``n_states``
+        (the padding column of ones) past its last factor; kept while ``powers`` is."""
+        if self._factor_cache is None or self._factor_cache[0] is not self.powers:
+            longest = max((len(c) for c in self.powers), default=0)
+            factors = np.full((len(self.powers), longest), self.n_states, dtype=np.intp)
+            for j, combo in enumerate(self.powers):
+                factors[j, : len(combo)] = combo
+            self._factor_cache = (self.powers, factors)
+        return self._factor_cache[1]
 
     def rhs(self, x: np.ndarray) -> np.ndarray:
         return self.library_matrix(np.atleast_2d(x)) @ self.coef
@@ -66,15 +83,59 @@ def _powers(n: int, degree: int) -> list:
     return [c for d in range(degree + 1) for c in combinations_with_replacement(range(n), d)]
 
 
-_CACHE: dict = {}
+#: Per ``max_states``: the dysts flows that pass the checks made without evaluating
+#: their right-hand sides, each with its random points (drawn in dysts' order).
+_SCANS: dict = {}
+#: Per ``(max_states, max_degree, name)``: the polynomial flow, or None if it is not one.
+_FOUND: dict = {}
 
 
-def polynomial_systems(max_states: int = 4, max_degree: int = 3) -> list[ZooSystem]:
-    """The dysts flows whose right-hand side is a polynomial (see the module docstring)."""
-    key = (max_states, max_degree)
-    if key in _CACHE:
-        return _CACHE[key]
+def polynomial_systems(
+    max_states: int = 4, max_degree: int = 3, *, names=None, first: int | None = None
+) -> list[ZooSystem]:
+    """The dysts flows whose right-hand side is a polynomial (see the module docstring),
+    in dysts' order.
+
+    Evaluating a flow's right-hand side compiles it (a fraction of a second each, about
+    half a minute for all of them), so only the flows asked for are evaluated: those
+    named in ``names`` (an iterable of dysts names; every flow when omitted), up to the
+    ``first`` polynomial ones.  Each flow is fitted on the same random points whichever
+    are asked for, so its coefficients do not depend on the others asked for with it.
+    """
     import dysts.flows as flows
+
+    wanted = None if names is None else set(names)
+    out = []
+    for name, system, x in _scan(flows, max_states):
+        if first is not None and len(out) >= first:
+            break
+        if wanted is not None and name not in wanted:
+            continue
+        key = (max_states, max_degree, name)
+        if key not in _FOUND:
+            _FOUND[key] = _fitted(name, system, x, max_degree)
+        if _FOUND[key] is not None:
+            out.append(_FOUND[key])
+    return out
+
+
+def polynomial_system(name: str, max_states: int = 4, max_degree: int = 3) -> ZooSystem:
+    """The polynomial flow ``name`` of :func:`polynomial_systems` (only it evaluated)."""
+    found = polynomial_systems(max_states, max_degree, names=[name])
+    if not found:
+        raise ValueError(
+            f"name: {name!r} is not a dysts flow with at most {max_states} states whose "
+            f"right-hand side is a polynomial of degree at most {max_degree}"
+        )
+    return found[0]
+
+
+def _scan(flows, max_states: int) -> list:
+    """``(name, system, points)`` of the dysts flows with at most ``max_states`` states,
+    without delay and autonomous (random points about the initial condition, from one
+    generator in dysts' order)."""
+    if max_states in _SCANS:
+        return _SCANS[max_states]
     from dysts.systems import get_attractor_list
 
     out = []
@@ -90,32 +151,39 @@ def polynomial_systems(max_states: int = 4, max_degree: int = 3) -> list[ZooSyst
         if getattr(system, "nonautonomous", False):
             continue
         ic = np.asarray(system.ic, dtype=float).ravel()
-        x = ic + rng.normal(size=(60 * n * n, n)) * (np.abs(ic) + 1.0)
-        with warnings.catch_warnings(), np.errstate(all="ignore"):
-            warnings.simplefilter("ignore")
-            try:
-                f = np.array([np.asarray(system.rhs(v, 0.0), float) for v in x])
-            except Exception:
-                continue
-        if f.shape != x.shape or not np.all(np.isfinite(f)):
-            continue
-        for degree in range(1, max_degree + 1):
-            powers = _powers(n, degree)
-            zs = ZooSystem(name, n, degree, powers, np.zeros((len(powers), n)), ic, 0.0)
-            th = zs.library_matrix(x)
-            coef = np.linalg.lstsq(th, f, rcond=None)[0]
-            if np.linalg.norm(th @ coef - f) <= 1e-9 * np.linalg.norm(f):
-                coef[np.abs(coef) < _COEF_CUT * np.abs(coef).max()] = 0.0
-                zs.coef = coef
-                zs.degree = max(degree, 2)
-                if zs.degree != degree:
-                    zs.powers = _powers(n, zs.degree)
-                    zs.coef = np.vstack([coef, np.zeros((len(zs.powers) - len(powers), n))])
-                zs.dt = float(system.period) / 100.0
-                out.append(zs)
-                break
-    _CACHE[key] = out
+        out.append((name, system, ic + rng.normal(size=(60 * n * n, n)) * (np.abs(ic) + 1.0)))
+    _SCANS[max_states] = out
     return out
+
+
+def _fitted(name: str, system, x: np.ndarray, max_degree: int) -> ZooSystem | None:
+    """The flow ``system`` as a :class:`ZooSystem`, from its right-hand side at the
+    points ``x``, or None if no polynomial up to ``max_degree`` reproduces it."""
+    n = x.shape[1]
+    ic = np.asarray(system.ic, dtype=float).ravel()
+    with warnings.catch_warnings(), np.errstate(all="ignore"):
+        warnings.simplefilter("ignore")
+        try:
+            f = np.array([np.asarray(system.rhs(v, 0.0), float) for v in x])
+        except Exception:
+            return None
+    if f.shape != x.shape or not np.all(np.isfinite(f)):
+        return None
+    for degree in range(1, max_degree + 1):
+        powers = _powers(n, degree)
+        zs = ZooSystem(name, n, degree, powers, np.zeros((len(powers), n)), ic, 0.0)
+        th = zs.library_matrix(x)
+        coef = np.linalg.lstsq(th, f, rcond=None)[0]
+        if np.linalg.norm(th @ coef - f) <= 1e-9 * np.linalg.norm(f):
+            coef[np.abs(coef) < _COEF_CUT * np.abs(coef).max()] = 0.0
+            zs.coef = coef
+            zs.degree = max(degree, 2)
+            if zs.degree != degree:
+                zs.powers = _powers(n, zs.degree)
+                zs.coef = np.vstack([coef, np.zeros((len(zs.powers) - len(powers), n))])
+            zs.dt = float(system.period) / 100.0
+            return zs
+    return None
 
 
 def lorenz96(n_states: int, forcing: float = 8.0) -> ZooSystem:

@@ -269,7 +269,7 @@ def published(n_systems=None, levels=(0.0, 0.001, 0.01), jobs=2, progress=True):
         return dict(system=system.name, level=level, exact=exact, error=err,
                     warned=bool(caught), formulation=model.diagnostics_.formulation)  # fmt: skip
 
-    systems = polynomial_systems()[:n_systems]
+    systems = polynomial_systems(first=n_systems)
     cases = [(s, level) for s in systems for level in levels]
     out = Parallel(n_jobs=jobs, return_as="generator")(delayed(one)(*c) for c in cases)
     rows = [r for r in tqdm(out, total=len(cases), desc="published protocol",

@@ -311,7 +311,7 @@ def run(
     from joblib import Parallel, delayed
     from tqdm import tqdm
 
-    systems = polynomial_systems()[:n_systems]
+    systems = polynomial_systems(first=n_systems)
     cases = [
         (s, f, d, seed) for s in systems for f in families for d in derivatives
         for seed in range(seeds)

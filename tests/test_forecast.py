@@ -208,15 +208,14 @@ def test_strong_form_models_wrong_without_a_warning_are_challenged():
     # where it forecasts better (right), else the record's lean towards it warns.
     # Asked only where the strong form's model warned, all four were silent.
     from robust_sindy import frontier, zoo
-    from robust_sindy.flows import polynomial_systems, simulate_system
+    from robust_sindy.flows import polynomial_system, simulate_system
 
-    systems = {s.name: s for s in polynomial_systems()}
     right = 0
     for name, family, level in [
         ("ChenLee", "glitches", 0.012), ("HyperRossler", "bursts", 0.012),
         ("IsothermalChemical", "glitches", 0.008), ("HyperRossler", "spikes", 0.008),
     ]:  # fmt: skip
-        system = systems[name]
+        system = polynomial_system(name)
         t, x, _ = simulate_system(system, 2000, 13)
         rng = np.random.default_rng([13, 91, round(level * 1e4)])
         noisy, _ = zoo.contaminate_family(x, family, rng, zoo.Contamination(base_noise=level))

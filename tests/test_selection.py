@@ -566,8 +566,9 @@ def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():
     # library and bends to fit it; judged by its deleted residual, it is left out, or
     # kept with the library row of its repaired readings.
     from robust_sindy import zoo
+    from robust_sindy.flows import polynomial_system
 
-    system = {s.name: s for s in zoo.polynomial_systems()}["KawczynskiStrizhak"]
+    system = polynomial_system("KawczynskiStrizhak")
     params = zoo.Contamination(base_noise=2e-3, spikes_fraction=0.02, spikes_range=(3.0, 5.0))
     rng = np.random.default_rng([6, zoo.FAMILIES.index("spikes"), 0])
     t, x, x_dot = rk4_trajectory(system, 800, 1086)
@@ -889,8 +890,9 @@ def test_a_fast_excursion_the_temporal_screen_cannot_follow_is_kept():
     import dataclasses
 
     from robust_sindy import zoo
+    from robust_sindy.flows import polynomial_system
 
-    system = {s.name: s for s in zoo.polynomial_systems()}["AtmosphericRegime"]
+    system = polynomial_system("AtmosphericRegime")
     t, x, x_dot = rk4_trajectory(system, 2000, 1857)
     clean = dataclasses.replace(zoo.ZOO_CONTAMINATION, base_noise=2e-3)
     noisy, _ = zoo.contaminate_family(x, "clean", np.random.default_rng(0), clean)

@@ -193,8 +193,9 @@ def _zoo_states(name, family, subsets=True, burn=900):
 
     import robust_sindy.selection.choice
     from robust_sindy import zoo
+    from robust_sindy.flows import polynomial_system
 
-    system = {s.name: s for s in zoo.polynomial_systems()}[name]
+    system = polynomial_system(name)
     rng = np.random.default_rng([0, zoo.FAMILIES.index(family), 1])
     t, x, _ = rk4_trajectory(system, 2000, burn)
     noisy, _ = zoo.contaminate_family(x, family, rng)
@@ -379,9 +380,10 @@ def test_measured_derivatives_drop_the_terms_the_data_do_not_vouch_for():
     # in (x0)' at t 3.3 on one draw) are dropped, never a true one, and a dropped term
     # that reached t 2 is reported; the support is right in nearly every draw.
     from robust_sindy import zoo
+    from robust_sindy.flows import polynomial_system
     from robust_sindy.selection.significance import VISIBLE
 
-    system = {s.name: s for s in zoo.polynomial_systems()}["Chen"]
+    system = polynomial_system("Chen")
     params = zoo.Contamination(heavy_dof=3.0, heavy_scale=0.005)
     t, x, x_dot = rk4_trajectory(system, 2000, 600)
     true = system.coef.T != 0

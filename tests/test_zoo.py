@@ -5,15 +5,16 @@ import pytest
 
 from robust_sindy import zoo
 from robust_sindy.cli import main
-from robust_sindy.flows import lorenz96_records
+from robust_sindy.flows import lorenz96_records, polynomial_system
 
 
 @pytest.fixture(scope="module")
-def systems():
-    return {s.name: s for s in zoo.polynomial_systems()}
+def lorenz():
+    return polynomial_system("Lorenz")
 
 
-def test_the_polynomial_flows_are_found_with_their_coefficients(systems):
+def test_the_polynomial_flows_are_found_with_their_coefficients():
+    systems = {s.name: s for s in zoo.polynomial_systems()}
     assert len(systems) >= 70
     lorenz = systems["Lorenz"]
     assert lorenz.degree == 2 and lorenz.n_states == 3
@@ -22,6 +23,29 @@ def test_the_polynomial_flows_are_found_with_their_coefficients(systems):
     assert np.isclose(lorenz.coef[1, 1], 28) and np.isclose(lorenz.coef[6, 1], -1)
     assert np.isclose(lorenz.coef[3, 2], -2.667) and np.isclose(lorenz.coef[5, 2], 1)
     assert np.count_nonzero(lorenz.coef) == 7
+
+
+def test_a_flow_asked_for_alone_is_the_flow_of_the_whole_list(monkeypatch):
+    from robust_sindy import flows
+
+    every = flows.polynomial_systems()
+    # Evaluated again from scratch: only the flows asked for, on their own points.
+    monkeypatch.setattr(flows, "_FOUND", {})
+    monkeypatch.setattr(flows, "_SCANS", {})
+    picked = {"HyperRossler", "Lorenz", every[-1].name}
+    alone = flows.polynomial_systems(names=sorted(picked))
+    assert [s.name for s in alone] == [s.name for s in every if s.name in picked]
+    assert set(flows._FOUND) == {(4, 3, name) for name in picked}
+    assert [s.name for s in flows.polynomial_systems(first=4)] == [s.name for s in every[:4]]
+    for system in [*alone, *flows.polynomial_systems(first=4)]:
+        full = next(s for s in every if s.name == system.name)
+        assert system is not full and system.powers == full.powers
+        np.testing.assert_array_equal(system.coef, full.coef)
+        np.testing.assert_array_equal(system.ic, full.ic)
+        assert system.dt == full.dt and system.degree == full.degree
+    for name in ("DoublePendulum", "NoSuchFlow"):  # not polynomial; not in dysts
+        with pytest.raises(ValueError, match=f"name: '{name}' is not a dysts flow"):
+            flows.polynomial_system(name)
 
 
 @pytest.mark.parametrize("family", zoo.ALL_FAMILIES)
@@ -52,8 +76,8 @@ def test_time_families_give_increasing_times_over_the_span(family):
     assert zoo.sample_times("clean", 2000, 0.01, np.random.default_rng(0)) is None
 
 
-def test_huber_sindy_identifies_a_zoo_case_exactly(systems):
-    rows = zoo.run_case(systems["Lorenz"], "spikes", "exact", 0, methods=("huber",), n_samples=800)
+def test_huber_sindy_identifies_a_zoo_case_exactly(lorenz):
+    rows = zoo.run_case(lorenz, "spikes", "exact", 0, methods=("huber",), n_samples=800)
     assert rows[0]["exact"] and rows[0]["iae"] < 0.05
 
 
@@ -65,14 +89,14 @@ def test_zoo_quick_command_writes_its_report(tmp_path):
     assert len((tmp_path / "zoo.csv").read_text().splitlines()) == 1 + 2 * 2 * 2 * 4
 
 
-def test_the_ensemble_peer_gives_the_same_result_on_every_run(systems):
+def test_the_ensemble_peer_gives_the_same_result_on_every_run(lorenz):
     # PySINDy's bagging draws from NumPy's global random state; the zoo seeds it per case
     # and restores it afterwards.
     np.random.seed(123)  # noqa: NPY002 (the legacy state PySINDy draws from)
     before = np.random.random()  # noqa: NPY002 (the legacy state PySINDy draws from)
     np.random.seed(123)  # noqa: NPY002 (the legacy state PySINDy draws from)
     runs = [
-        zoo.run_case(systems["Lorenz"], "rows", "states", 0, methods=("ensemble",), n_samples=600)
+        zoo.run_case(lorenz, "rows", "states", 0, methods=("ensemble",), n_samples=600)
         for _ in range(2)
     ]
     assert runs[0][0]["iae"] == runs[1][0]["iae"]
@@ -80,14 +104,14 @@ def test_the_ensemble_peer_gives_the_same_result_on_every_run(systems):
     assert np.random.random() == before  # the caller's random state is left alone  # noqa: NPY002 (the legacy state PySINDy draws from)
 
 
-def test_a_case_can_take_other_contamination(systems):
+def test_a_case_can_take_other_contamination(lorenz):
     fewer_rows = zoo.Contamination(rows_fraction=0.1)
     (row,) = zoo.run_case(
-        systems["Lorenz"], "rows", "exact", 0, methods=("huber",), n_samples=600,
+        lorenz, "rows", "exact", 0, methods=("huber",), n_samples=600,
         contamination=fewer_rows,
     )  # fmt: skip
     assert row["contaminated"] == 0.1
-    (row,) = zoo.run_case(systems["Lorenz"], "rows", "exact", 0, methods=("huber",), n_samples=600)
+    (row,) = zoo.run_case(lorenz, "rows", "exact", 0, methods=("huber",), n_samples=600)
     assert row["contaminated"] == zoo.ZOO_CONTAMINATION.rows_fraction == 0.2
 
 
