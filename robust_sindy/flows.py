@@ -102,18 +102,16 @@ def polynomial_systems(
     ``first`` polynomial ones.  Each flow is fitted on the same random points whichever
     are asked for, so its coefficients do not depend on the others asked for with it.
     """
-    import dysts.flows as flows
-
     wanted = None if names is None else set(names)
     out = []
-    for name, system, x in _scan(flows, max_states):
+    for name, system, ic, x in _scan(max_states):
         if first is not None and len(out) >= first:
             break
         if wanted is not None and name not in wanted:
             continue
         key = (max_states, max_degree, name)
         if key not in _FOUND:
-            _FOUND[key] = _fitted(name, system, x, max_degree)
+            _FOUND[key] = _fitted(name, system, ic, x, max_degree)
         if _FOUND[key] is not None:
             out.append(_FOUND[key])
     return out
@@ -130,12 +128,13 @@ def polynomial_system(name: str, max_states: int = 4, max_degree: int = 3) -> Zo
     return found[0]
 
 
-def _scan(flows, max_states: int) -> list:
-    """``(name, system, points)`` of the dysts flows with at most ``max_states`` states,
-    without delay and autonomous (random points about the initial condition, from one
-    generator in dysts' order)."""
+def _scan(max_states: int) -> list:
+    """``(name, system, initial condition, points)`` of the dysts flows with at most
+    ``max_states`` states, without delay and autonomous (random points about the initial
+    condition, from one generator in dysts' order)."""
     if max_states in _SCANS:
         return _SCANS[max_states]
+    import dysts.flows as flows
     from dysts.systems import get_attractor_list
 
     out = []
@@ -151,16 +150,16 @@ def _scan(flows, max_states: int) -> list:
         if getattr(system, "nonautonomous", False):
             continue
         ic = np.asarray(system.ic, dtype=float).ravel()
-        out.append((name, system, ic + rng.normal(size=(60 * n * n, n)) * (np.abs(ic) + 1.0)))
+        out.append((name, system, ic, ic + rng.normal(size=(60 * n * n, n)) * (np.abs(ic) + 1.0)))
     _SCANS[max_states] = out
     return out
 
 
-def _fitted(name: str, system, x: np.ndarray, max_degree: int) -> ZooSystem | None:
-    """The flow ``system`` as a :class:`ZooSystem`, from its right-hand side at the
-    points ``x``, or None if no polynomial up to ``max_degree`` reproduces it."""
+def _fitted(name: str, system, ic: np.ndarray, x: np.ndarray, max_degree: int):
+    """The flow ``system`` (initial condition ``ic``) as a :class:`ZooSystem`, from its
+    right-hand side at the points ``x``, or None if no polynomial up to ``max_degree``
+    reproduces it."""
     n = x.shape[1]
-    ic = np.asarray(system.ic, dtype=float).ravel()
     with warnings.catch_warnings(), np.errstate(all="ignore"):
         warnings.simplefilter("ignore")
         try:
