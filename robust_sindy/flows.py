@@ -30,6 +30,9 @@ __all__ = [
     "ZooSystem",
     "lorenz96",
     "lorenz96_records",
+    "monomial_factors",
+    "monomial_powers",
+    "monomials",
     "polynomial_system",
     "polynomial_systems",
     "simulate_system",
@@ -54,33 +57,43 @@ class ZooSystem:
     _factor_cache: tuple | None = field(default=None, init=False, repr=False, compare=False)
 
     def library_matrix(self, x: np.ndarray) -> np.ndarray:
-        """The monomials at the states ``x`` (m, n): each the product of its factors
-        from the left, starting from 1 (a factor of 1 pads the shorter ones, exactly)."""
-        factors = self._factors()
-        padded = np.ones((x.shape[0], self.n_states + 1))
-        padded[:, : self.n_states] = x
-        out = np.ones((x.shape[0], len(self.powers)))
-        for k in range(factors.shape[1]):
-            out *= padded[:, factors[:, k]]
-        return out
-
-    def _factors(self) -> np.ndarray:
-        """The state index of each factor of each monomial (p, degree), ``n_states``
-        (the padding column of ones) past its last factor; kept while ``powers`` is."""
+        """The monomials at the states ``x`` (m, n), as :func:`monomials` forms them."""
         if self._factor_cache is None or self._factor_cache[0] is not self.powers:
-            longest = max((len(c) for c in self.powers), default=0)
-            factors = np.full((len(self.powers), longest), self.n_states, dtype=np.intp)
-            for j, combo in enumerate(self.powers):
-                factors[j, : len(combo)] = combo
-            self._factor_cache = (self.powers, factors)
-        return self._factor_cache[1]
+            self._factor_cache = (self.powers, monomial_factors(self.powers, self.n_states))
+        return monomials(x, self._factor_cache[1])
 
     def rhs(self, x: np.ndarray) -> np.ndarray:
         return self.library_matrix(np.atleast_2d(x)) @ self.coef
 
 
-def _powers(n: int, degree: int) -> list:
+def monomial_powers(n: int, degree: int) -> list:
+    """The monomials of degree at most ``degree`` in ``n`` states, as tuples of state
+    indices, by degree and then lexicographically (the order of
+    :class:`robust_sindy.PolynomialLibrary`)."""
     return [c for d in range(degree + 1) for c in combinations_with_replacement(range(n), d)]
+
+
+def monomial_factors(powers, n_states: int) -> np.ndarray:
+    """The state index of each factor of each monomial of ``powers`` (tuples of state
+    indices), as an array (p, longest): ``n_states`` past a monomial's last factor, the
+    index of a column of ones that :func:`monomials` appends."""
+    longest = max((len(c) for c in powers), default=0)
+    factors = np.full((len(powers), longest), n_states, dtype=np.intp)
+    for j, combo in enumerate(powers):
+        factors[j, : len(combo)] = combo
+    return factors
+
+
+def monomials(x: np.ndarray, factors: np.ndarray) -> np.ndarray:
+    """The monomials with the ``factors`` of :func:`monomial_factors` at the states ``x``
+    (m, n_states): each the product of its factors from the left, starting from 1, all
+    at once (a factor of 1 pads the shorter ones, which is exact)."""
+    padded = np.ones((x.shape[0], x.shape[1] + 1))
+    padded[:, : x.shape[1]] = x
+    out = np.ones((x.shape[0], factors.shape[0]))
+    for k in range(factors.shape[1]):
+        out *= padded[:, factors[:, k]]
+    return out
 
 
 #: Per ``max_states``: the dysts flows that pass the checks made without evaluating
@@ -169,7 +182,7 @@ def _fitted(name: str, system, ic: np.ndarray, x: np.ndarray, max_degree: int):
     if f.shape != x.shape or not np.all(np.isfinite(f)):
         return None
     for degree in range(1, max_degree + 1):
-        powers = _powers(n, degree)
+        powers = monomial_powers(n, degree)
         zs = ZooSystem(name, n, degree, powers, np.zeros((len(powers), n)), ic, 0.0)
         th = zs.library_matrix(x)
         coef = np.linalg.lstsq(th, f, rcond=None)[0]
@@ -178,7 +191,7 @@ def _fitted(name: str, system, ic: np.ndarray, x: np.ndarray, max_degree: int):
             zs.coef = coef
             zs.degree = max(degree, 2)
             if zs.degree != degree:
-                zs.powers = _powers(n, zs.degree)
+                zs.powers = monomial_powers(n, zs.degree)
                 zs.coef = np.vstack([coef, np.zeros((len(zs.powers) - len(powers), n))])
             zs.dt = float(system.period) / 100.0
             return zs
@@ -189,7 +202,7 @@ def lorenz96(n_states: int, forcing: float = 8.0) -> ZooSystem:
     """Lorenz-96 with ``n_states`` states, ``x_i' = (x_i+1 - x_i-2) x_i-1 - x_i + F``
     (indices cyclic), on the quadratic monomials: the zoo's system with many channels."""
     n = int(n_states)
-    powers = _powers(n, 2)
+    powers = monomial_powers(n, 2)
     where = {c: j for j, c in enumerate(powers)}
     coef = np.zeros((len(powers), n))
     for i in range(n):

@@ -218,3 +218,23 @@ def test_the_sensor_scripts_rings_have_the_coefficients_of_their_equations():
     a = np.array(a)
     expected = r * v * (1 - v @ a.T)
     assert np.allclose(system.library(v) @ system.coef, expected, rtol=1e-12, atol=1e-12)
+
+
+def test_the_flows_monomials_are_the_polynomial_librarys_columns():
+    # The zoo's and the sensor script's right-hand sides are scored against
+    # PolynomialLibrary's columns: the same monomials in the same order, each the
+    # product of its factors from the left (exactly so, shorter ones included).
+    import robust_sindy as rs
+    from robust_sindy.flows import monomial_factors, monomial_powers, monomials
+
+    x = np.random.default_rng(4).normal(size=(40, 3))
+    powers = monomial_powers(3, 3)
+    got = monomials(x, monomial_factors(powers, 3))
+    assert got.shape == (40, 20)
+    np.testing.assert_allclose(got, rs.PolynomialLibrary(degree=3).fit(x).transform(x),
+                               rtol=1e-13)  # fmt: skip
+    for j, combo in enumerate(powers):
+        column = np.ones(40)
+        for i in combo:
+            column = column * x[:, i]
+        assert np.array_equal(got[:, j], column), combo

@@ -39,7 +39,6 @@ import math
 import sys
 import time
 import warnings
-from itertools import combinations_with_replacement
 from pathlib import Path
 
 import numpy as np
@@ -48,16 +47,18 @@ from joblib import Parallel, delayed
 
 from robust_sindy import HuberSINDy, PolynomialLibrary, zoo
 from robust_sindy.diagnostics import count_kinds, kind_of
-from robust_sindy.flows import lorenz96, write_rows
+from robust_sindy.flows import (
+    lorenz96,
+    monomial_factors,
+    monomial_powers,
+    monomials,
+    write_rows,
+)
 
 SYSTEMS = ("DuffingForced", "Hopf", "Lorenz96_20")
 #: The zoo's sensor families, and glitches at uniformly random times (a logger's own
 #: time stamps and a channel's glitches together).
 FAMILIES = (*zoo.SENSOR_FAMILIES, "glitches+irregular")
-
-
-def _powers(k: int, degree: int) -> list:
-    return [c for d in range(degree + 1) for c in combinations_with_replacement(range(k), d)]
 
 
 class System:
@@ -66,19 +67,16 @@ class System:
     def __init__(self, name, n, degree, coef, ic, dt, burn=None, forcing=None):
         self.name, self.n, self.degree, self.coef = name, n, degree, coef
         self.ic, self.dt, self.burn, self.forcing = np.asarray(ic, float), dt, burn, forcing
-        self.powers = _powers(n + (forcing is not None), degree)
+        self.powers = monomial_powers(n + (forcing is not None), degree)
+        self._factors = monomial_factors(self.powers, n + (forcing is not None))
 
     def library(self, z):
-        out = np.ones((z.shape[0], len(self.powers)))
-        for j, combo in enumerate(self.powers):
-            for i in combo:
-                out[:, j] *= z[:, i]
-        return out
+        return monomials(z, self._factors)
 
 
 def _system(name: str) -> System:
     if name == "DuffingForced":
-        powers = _powers(3, 3)  # x0, x1, u0
+        powers = monomial_powers(3, 3)  # x0, x1, u0
         at = {c: j for j, c in enumerate(powers)}
         coef = np.zeros((len(powers), 2))
         coef[at[(1,)], 0] = 1.0
@@ -90,7 +88,7 @@ def _system(name: str) -> System:
 
         return System(name, 2, 3, coef, [1.0, 0.0], 0.03, forcing=forcing)
     if name == "Hopf":
-        powers = _powers(2, 3)
+        powers = monomial_powers(2, 3)
         at = {c: j for j, c in enumerate(powers)}
         coef = np.zeros((len(powers), 2))
         mu = 0.2
@@ -127,7 +125,7 @@ def _ring(name: str, size: int, per: int, degree: int, terms) -> tuple[int, np.n
         prefix = name.partition("_")[0]
         raise ValueError(f"unknown system {name!r}: {prefix}_N needs N of at least 2")
     n = per * size
-    powers = _powers(n, degree)
+    powers = monomial_powers(n, degree)
     at = {c: j for j, c in enumerate(powers)}
     coef = np.zeros((len(powers), n))
     for i in range(size):
@@ -183,7 +181,7 @@ def _lotka_volterra4(name: str) -> System:
         [[1.0, 1.09, 1.52, 0.0], [0.0, 1.0, 0.44, 1.36], [2.33, 0.0, 1.0, 0.47],
          [1.21, 0.51, 0.35, 1.0]]
     )  # fmt: skip
-    powers = _powers(4, 2)
+    powers = monomial_powers(4, 2)
     at = {c: j for j, c in enumerate(powers)}
     coef = np.zeros((len(powers), 4))
     for i in range(4):
