@@ -110,7 +110,10 @@ def _cases(names, derivatives=None):
 def record(names, path, jobs, derivatives=None):
     cases = _cases(names, derivatives)
     t0 = time.perf_counter()
-    results = Parallel(n_jobs=jobs, verbose=0)(delayed(f)(*a) for _, f, a in cases)
+    from tqdm import tqdm
+
+    out = Parallel(n_jobs=jobs, return_as="generator")(delayed(f)(*a) for _, f, a in cases)
+    results = list(tqdm(out, total=len(cases), desc="cases"))
     rec = {key: r for (key, _, _), r in zip(cases, results, strict=True) if r is not None}
     with open(path, "wb") as fh:
         pickle.dump(rec, fh)
