@@ -69,6 +69,46 @@ def test_temporal_screen_is_quiet_on_clean_data_and_unit_free():
     assert np.array_equal(scaled.flags, s.flags)
 
 
+def _glitched_records():
+    """Contaminated Lorenz states (the paper's noise model, three draws) cut into blocks
+    of 100 samples, and records of three channels with glitches of 3 to 20 standard
+    deviations in 5 % of the entries of each, at uniform and at random times."""
+    from robust_sindy.noise import contaminate
+
+    data = Lorenz().generate(t_end=6.0)
+    for seed in range(3):
+        x = contaminate(data.x, data.x_dot, rng=np.random.default_rng(seed)).x
+        for lo in range(0, x.shape[0] - 99, 100):
+            yield data.t[lo : lo + 100], x[lo : lo + 100]
+    for seed in range(4):
+        rng = np.random.default_rng([seed, 41])
+        times = np.sort(rng.uniform(0.0, 15.0, 1200)) if seed % 2 else None
+        t, _, x = _smooth(1200, seed, noise=0.0, t=times)
+        x = x + 0.01 * x.std(axis=0) * rng.normal(size=x.shape)
+        size = rng.uniform(3.0, 20.0, x.shape) * x.std(axis=0) * rng.choice([-1, 1], x.shape)
+        yield t, x + (rng.random(x.shape) < 0.05) * size
+
+
+def test_a_channels_screen_does_not_depend_on_the_other_channels():
+    """Every step of the temporal screen, its rounds of withdrawal included, is the
+    channel's own: screened with the others or alone, a channel gets the same flags,
+    repaired values and noise level (66 channels of 22 records; before each channel
+    had its own rounds, 6 of them differed, repaired values by up to 0.23)."""
+    differ, count = [], 0
+    for t, x in _glitched_records():
+        together = temporal_screen(x, t)
+        for k in range(x.shape[1]):
+            alone = temporal_screen(x[:, [k]], t)
+            count += 1
+            if not (
+                np.array_equal(alone.flags[:, 0], together.flags[:, k])
+                and np.allclose(alone.repaired[:, 0], together.repaired[:, k], rtol=1e-12, atol=0)
+                and np.isclose(alone.scale[0], together.scale[k], rtol=1e-12, atol=0)
+            ):
+                differ.append((count, k))
+    assert count == 66 and not differ, differ
+
+
 def test_local_polynomial_derivative_ignores_masked_outliers():
     t, clean, x = _smooth(noise=0.0)
     true = np.column_stack(

@@ -396,14 +396,18 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
     ratio, pred, err = ratio_of(flags)
     flags &= ratio > 1
     # 4. Flags withdrawn (never added: this ends) in windows the local fits do not
-    #    resolve, the errors re-measured without them.
+    #    resolve, the errors re-measured without them.  Each component has its own
+    #    rounds: one that withdraws nothing is done, whatever the others withdraw.
+    going = np.ones(x.shape[1], dtype=bool)
     for _ in range(_UNRESOLVED_ROUNDS):
-        drop = flags & _unresolved(x, err, flags, h, cutoff, floor)
-        if not drop.any():
+        drop = flags & _unresolved(x, err, flags, h, cutoff, floor) & going
+        going = drop.any(axis=0)
+        if not going.any():
             break
         flags &= ~drop
-        ratio, pred, err = ratio_of(flags)
-        flags &= ratio > 1
+        ratio, again, again_err = ratio_of(flags)
+        pred[:, going], err[:, going] = again[:, going], again_err[:, going]
+        flags[:, going] &= ratio[:, going] > 1
     return flags, np.where(flags, pred + centre, given), _unflagged_scale(err, flags)
 
 
@@ -449,6 +453,10 @@ def temporal_screen(
        errors re-measured, until none is: a fast excursion sampled by a few samples is
        left to the model-based screen rather than "repaired" with a prediction that
        cannot follow it.
+
+    Each component goes through these steps on its own (its rounds of withdrawal
+    too), so a channel's flags, repaired values and noise level do not depend on the
+    other channels.
 
     Parameters
     ----------
