@@ -290,6 +290,11 @@ class Diagnostics:
         a term the search under them put back in the model is not dropped (NaN), and
         the terms their own significance rounds left out are added
         (``constrained_.pruned``).
+    added : ndarray (n, p)
+        The robust score t of each term the sparse selection left out that the final
+        selection put back (the largest per equation at ``SIGNIFICANCE`` (5) or more,
+        kept where its drops and pruning keep it:
+        :func:`~robust_sindy.selection.final.missed_terms`); NaN for every other term.
     derivative_half_window : ndarray of int (n_states,)
         Half width, in samples, of the local quartic that estimated each state's
         derivative (chosen from the data by
@@ -407,6 +412,7 @@ class Diagnostics:
     record_samples: int = 0
     independent_samples: np.ndarray = field(default_factory=lambda: np.zeros(0))
     samples_needed: np.ndarray = field(default_factory=lambda: np.zeros(0))
+    added: np.ndarray = field(default_factory=lambda: np.zeros((0, 0)))
 
     @property
     def weak(self) -> np.ndarray:
@@ -489,6 +495,8 @@ class Diagnostics:
             + np.array2string(_smallest(self.significance), precision=3),
             "  terms dropped below the significance bar per equation: "
             f"{np.isfinite(self.pruned).sum(axis=1).tolist()}",
+            "  terms put back by their score t per equation: "
+            f"{np.isfinite(self.added).sum(axis=1).tolist() if self.added.size else 'none'}",
             "  the weak form's score against the final selection's drops: "
             + (
                 np.array2string(self.dropped_evidence, precision=3)
@@ -1047,7 +1055,7 @@ def _condition_numbers(theta_kept, coef) -> np.ndarray:
     return cond
 
 
-def _rival_margin(selection, rescored, standard, n) -> tuple[np.ndarray, np.ndarray]:
+def _rival_margin(selection, rescored, standard, n, th, yk) -> tuple[np.ndarray, np.ndarray]:
     """The score margin to the next other model (``Diagnostics.rival_margin``) and
     whether it is that of the weak form's score under the noise the terms carry
     (``Diagnostics.rival_by_noise``): the selection's BIC, except for the equations
@@ -1060,7 +1068,7 @@ def _rival_margin(selection, rescored, standard, n) -> tuple[np.ndarray, np.ndar
     by_noise = np.zeros(n, dtype=bool)
     if selection is None or selection.criterion != "bic":
         return np.full(n, np.nan), by_noise
-    margin = selection.rival_margin_to(standard)
+    margin = selection.rival_margin_to(standard, th, yk)
     if rescored is not None:
         noise = rescored.rival_margin(standard)
         by_noise = rescored.switched | (rescored.trusted & (noise < margin))
@@ -1146,7 +1154,7 @@ def diagnose(
         if selection is not None and selection.criterion == "bic"
         else np.full(n, np.nan)
     )
-    rival_margin, rival_by_noise = _rival_margin(selection, rescored, standard, n)
+    rival_margin, rival_by_noise = _rival_margin(selection, rescored, standard, n, th, yk)
     if constrained is not None and constrained.candidates is not None:
         # The search under the constraints chose the model: its candidates are the
         # alternatives, and a term it put back is not dropped.
@@ -1223,6 +1231,7 @@ def diagnose(
         significance=np.ascontiguousarray(tstat.T),
         significance_level=SIGNIFICANCE if deriv.measured else SIGNIFICANCE_ESTIMATED,
         pruned=np.ascontiguousarray(pruned.T),
+        added=np.ascontiguousarray(np.where(coef != 0, final.added, np.nan).T),
         aliased=[feature_names[j] for j in np.flatnonzero(floor.aliased)],
         derivative_half_window=deriv.windows.copy(),
         formulation="strong" if weak is None else "weak",

@@ -596,7 +596,7 @@ class HuberSINDy(BaseEstimator):
             )  # fmt: skip
         else:
             nan = np.full(fitted.coef.shape, np.nan)
-            final = FinalSelection(fitted.coef, nan, nan.copy(), nan.copy())
+            final = FinalSelection(fitted.coef, nan, nan.copy(), nan.copy(), nan.copy())
         dropped = None
         if rescored is not None and self.constraints is None:
             # The final selection's drops, scored as the rescoring scored the candidates.

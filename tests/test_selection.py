@@ -858,6 +858,17 @@ def test_score_margin_is_the_gap_to_the_best_other_support():
     reference[0, 0] = 3.0
     got = score_margin(scores, cand, index, rivals=True, reference=reference)
     assert np.allclose(got, [0.0, np.inf])
+    # The reported model scored itself (a term put back after the selection): where it
+    # scores better than the chosen candidate the margin is measured from it, and the
+    # chosen candidate is a rival at the difference; where worse, from the chosen one.
+    got = score_margin(
+        scores, cand, index, rivals=True, reference=reference, reference_score=np.array([1.0, 9.0])
+    )
+    assert np.allclose(got, [2.0, np.inf])
+    got = score_margin(
+        scores, cand, index, rivals=True, reference=reference, reference_score=np.array([4.0, 9.0])
+    )
+    assert np.allclose(got, [0.0, np.inf])
 
 
 def test_a_close_runner_up_support_is_reported():
@@ -1103,3 +1114,34 @@ def test_leverage_cache_updates_agree_with_fresh_leverages(seed):
         assert np.all(np.abs(fresh[7, spans]) > 1e6 * np.abs(r[7, spans]))
         spent.append(max(e.spent for e in cache.entries.values()) if cache.entries else 0)
     assert sum(s > 0 for s in spent) >= 3
+
+
+def test_the_rival_margin_is_measured_from_a_reported_model_that_scores_better():
+    # Column 0 of a sparse regression: the chosen model scored in its own right gives
+    # the selection's margin; with a true term taken out of every candidate's reach (the
+    # reported model has it, the candidates do not), the margin is measured from the
+    # reported model's better score, and the chosen candidate is a rival at the
+    # difference, not at zero.
+    from robust_sindy.selection import criteria
+
+    rng = np.random.default_rng(5)
+    theta = rng.normal(size=(600, 8))
+    coef = np.zeros((8, 1))
+    coef[[0, 3], 0] = [2.0, -1.0]
+    y = theta @ coef + 0.1 * rng.normal(size=(600, 1))
+    sel = select(theta, y, subsets=False)
+    assert sel.rival_margin_to(sel.coef, theta, y) == sel.rival_margin_to(sel.coef)
+    blind = theta.copy()
+    blind[:, 3] = 0.0  # the selection cannot see term 3
+    sel = select(blind, y, subsets=False)
+    assert sel.coef[0, 0] != 0 and sel.coef[3, 0] == 0
+    reported = np.linalg.lstsq(theta[:, [0, 3]], y, rcond=None)[0]
+    full = np.zeros((8, 1))
+    full[[0, 3]] = reported
+    assert sel.rival_margin_to(full)[0] == 0.0  # from the chosen candidate's score
+    own = criteria._scored(600, np.array([[criteria._candidate_loss(theta, y[:, 0], full[:, 0],
+                           sel.delta[0])]]), full[None], sel.delta, sel.tau)[0]  # fmt: skip
+    assert sel.rival_margin_to(full, theta, y)[0] == pytest.approx(
+        sel.scores[sel.index[0], 0] - own[0]
+    )
+    assert sel.rival_margin_to(full, theta, y)[0] > 100

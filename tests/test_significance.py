@@ -431,3 +431,118 @@ def test_a_drop_that_leaves_no_clear_term_is_undone(monkeypatch):
     both = [names.index("hare"), names.index("hare*lynx")]
     assert np.all(t[both] < bar) and np.all(t[both] >= 10.0)
     assert model.diagnostics_.weak[0][both].all()
+
+
+def _huber_on(theta, y, support, delta):
+    """The Huber estimate (lam = 0) on the columns ``support``, zero elsewhere."""
+    coef = np.zeros(theta.shape[1])
+    coef[support] = fit(theta[:, support], y, "admm", delta, 0.0).coef
+    return coef
+
+
+def test_the_score_t_of_a_left_out_null_term_is_about_standard_normal():
+    # Column 2 is noise: the score t of adding it to the Huber fit on the others exceeds
+    # 1.96 about 5 % of the time; column 3 (coefficient 0.3, Wald t about 15) left out
+    # instead is found in every draw, its score t below the Wald t of the model with it
+    # (the score's variance is that of residuals it inflates) but of the same order.
+    from robust_sindy.selection.significance import score_t
+
+    delta = 1.345 * 0.5
+    null, found = [], []
+    for seed in range(200):
+        theta, y, _ = _regression(seed)
+        t = score_t(theta, y, _huber_on(theta, y, [0, 1, 3], delta), delta)
+        assert np.isnan(t[[0, 1, 3]]).all()
+        null.append(t[2] > 1.96)
+        t = score_t(theta, y, _huber_on(theta, y, [0, 1, 2], delta), delta)
+        wald = robust_t(theta, y, _huber_on(theta, y, [0, 1, 2, 3], delta), delta)[3]
+        found.append(t[3] / wald)
+        assert t[3] > SIGNIFICANCE
+    assert 0.02 <= np.mean(null) <= 0.09
+    assert 0.5 < np.min(found) and np.max(found) < 1.05
+
+
+def test_the_score_t_is_nan_for_a_term_the_support_spans():
+    from robust_sindy.selection.significance import score_t
+
+    theta, y, _ = _regression(3)
+    theta = np.column_stack([theta, theta[:, 0] - 2 * theta[:, 1]])
+    t = score_t(theta, y, _huber_on(theta, y, [0, 1, 3], 1.0), 1.0)
+    assert np.isnan(t[[0, 1, 3, 4]]).all() and np.isfinite(t[2])
+
+
+@settings(max_examples=30, deadline=None)
+@given(
+    st.lists(st.floats(-3, 3), min_size=4, max_size=4),
+    st.floats(-3, 3),
+    st.integers(0, 10),
+)
+def test_the_score_t_is_unit_free(log_cols, log_y, seed):
+    from robust_sindy.selection.significance import score_t
+
+    theta, y, _ = _regression(seed)
+    coef = np.zeros(4)
+    coef[[0, 1]] = np.linalg.lstsq(theta[:, [0, 1]], y, rcond=None)[0]
+    c, s = 10.0 ** np.array(log_cols), 10.0**log_y
+    t = score_t(theta, y, coef, 0.7)
+    t_scaled = score_t(theta * c, s * y, s * coef / c, 0.7 * s)
+    assert np.allclose(t, t_scaled, rtol=1e-6, equal_nan=True)
+
+
+def _stand_in_problem(seed, weight):
+    """A true term ``c`` of coefficient ``weight`` and three columns that follow it to a
+    correlation of about 0.9 (stand-ins), beside two clear terms and a noise column;
+    the selected model has the stand-ins in ``c``'s place."""
+    from robust_sindy.core.scaling import Standardizer
+    from robust_sindy.selection.problem import Problem
+
+    rng = np.random.default_rng(seed)
+    m = 3000
+    a, b, c, d = rng.normal(size=(4, m))
+    stand_ins = c[:, None] + 0.5 * rng.normal(size=(m, 3))
+    theta = np.column_stack([a, b, c, d, stand_ins])
+    y = 3 * a - 2 * b + weight * c + 0.5 * rng.normal(size=m)
+    problem = Problem(theta, y[:, None], Standardizer.from_data(theta, y[:, None]), [slice(0, m)])
+    selected = [0, 1, 4, 5, 6]
+    coef = np.zeros((7, 1))
+    coef[selected, 0] = np.linalg.lstsq(theta[:, selected], y, rcond=None)[0]
+    return problem, coef
+
+
+def _final(problem, coef):
+    from robust_sindy.selection.final import final_selection
+
+    return final_selection(
+        problem, problem.theta_s, coef, np.array([10.0]), selection_tol=0.005,
+        floor_tol=0.005, measured=True, reference=None, method="admm", solver=None,
+        options={},
+    )  # fmt: skip
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_a_true_term_the_selection_left_out_for_its_stand_ins_is_put_back(seed):
+    # With the stand-ins in the model the true term's score t is in the tens; put back,
+    # the stand-ins' robust t falls to that of noise and the pruning drops them.  The
+    # noise column (score t of noise) is never put in.
+    from robust_sindy.selection.final import ADD_SIGNIFICANCE
+    from robust_sindy.selection.significance import score_t
+
+    problem, coef = _stand_in_problem(seed, weight=1.0)
+    standard = problem.scaler.coef_to_standard(coef)
+    t = score_t(problem.theta_s, problem.y_s, standard, problem.delta_standard([10.0]))
+    assert t[2, 0] > 2 * ADD_SIGNIFICANCE and t[3, 0] < ADD_SIGNIFICANCE
+    final = _final(problem, coef)
+    assert np.array_equal(np.flatnonzero(final.coef[:, 0]), [0, 1, 2])
+    assert np.flatnonzero(np.isfinite(final.added[:, 0])).tolist() == [2]
+    assert final.added[2, 0] == pytest.approx(t[2, 0])
+
+
+@pytest.mark.parametrize("seed", range(4))
+def test_without_a_missing_term_nothing_is_put_back(seed):
+    # The right support selected: every left-out column's score t is that of noise.
+    problem, _ = _stand_in_problem(seed, weight=1.0)
+    theta, y = problem.theta, problem.y[:, 0]
+    coef = np.zeros((7, 1))
+    coef[[0, 1, 2], 0] = np.linalg.lstsq(theta[:, [0, 1, 2]], y, rcond=None)[0]
+    final = _final(problem, coef)
+    assert np.array_equal(final.coef != 0, coef != 0) and np.isnan(final.added).all()

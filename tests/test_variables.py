@@ -185,9 +185,9 @@ def test_the_diagnostics_take_a_replaced_equations_margin_from_the_rescoring():
     out = rescore_supports(g, y, np.array([[0.0, -RATE], [1.0, RATE]]), [pool], noise, 6.0)
     assert out.switched.tolist() == [True, False]
     bic = np.array([0.0, 2.5])  # the BIC's own choice reads as a runner-up at zero
-    selection = SimpleNamespace(criterion="bic", rival_margin_to=lambda reference: bic)
+    selection = SimpleNamespace(criterion="bic", rival_margin_to=lambda reference, theta, y: bic)
     reported = np.array([[-RATE, -RATE], [RATE, RATE]])
-    margin, by_noise = _rival_margin(selection, out, reported, 2)
+    margin, by_noise = _rival_margin(selection, out, reported, 2, None, None)
     assert margin[0] == out.rival_margin(reported)[0] > 6.0
     # Kept, and the score puts the other model further than the BIC does: the BIC's
     # margin stands.
@@ -198,11 +198,11 @@ def test_the_diagnostics_take_a_replaced_equations_margin_from_the_rescoring():
     # BIC saw none), the score's margin is the one reported (HyperJha at 8 % noise:
     # `x1*x2` chosen in place of `x1`, BIC margin 3422, the score's 1.3).
     far = SimpleNamespace(
-        criterion="bic", rival_margin_to=lambda reference: np.array([0.0, np.inf])
+        criterion="bic", rival_margin_to=lambda reference, theta, y: np.array([0.0, np.inf])
     )
-    margin, by_noise = _rival_margin(far, out, reported, 2)
+    margin, by_noise = _rival_margin(far, out, reported, 2, None, None)
     assert margin[1] == out.rival_margin(reported)[1] and by_noise.tolist() == [True, True]
-    assert np.isnan(_rival_margin(None, out, reported, 2)[0]).all()
+    assert np.isnan(_rival_margin(None, out, reported, 2, None, None)[0]).all()
 
 
 def test_the_runner_up_warning_names_the_score_its_margins_are_on():

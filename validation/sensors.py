@@ -194,7 +194,10 @@ def _lotka_volterra4(name: str) -> System:
 def _rossler_ring(name: str, size: int, coupling: float = 0.1) -> System:
     """``size`` Rössler systems (3 ``size`` states) on a ring, each driven through its
     first state by the next one's: ``x_i' = -y_i - z_i + c (x_{i+1} - x_i)``,
-    ``y_i' = x_i + 0.2 y_i``, ``z_i' = 0.2 + z_i (x_i - 5.7)``; at least two."""
+    ``y_i' = x_i + 0.2 y_i``, ``z_i' = 0.2 + z_i (x_i - 5.7)``; at least two. Two drive
+    each other and synchronise: their first states differ by 2 to 4 % of their spread
+    (seeds 71 and 901), so their records cannot tell one system's terms from the
+    other's; from three on, neighbours differ by 15 to 45 %."""
 
     def terms(x, nxt, i):
         y, z = x + 1, x + 2

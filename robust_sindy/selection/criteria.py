@@ -167,13 +167,30 @@ class Selection:
     rival_margin: np.ndarray
     tau: np.ndarray | None = None
 
-    def rival_margin_to(self, reference: np.ndarray) -> np.ndarray:
+    def rival_margin_to(self, reference: np.ndarray, theta=None, y=None) -> np.ndarray:
         """:attr:`rival_margin` with the model finally reported, ``reference`` (p, n,
         in the units of the candidates), in the chosen one's place
-        (:func:`score_margin`; with ``reference = coef`` it is :attr:`rival_margin`)."""
+        (:func:`score_margin`; with ``reference = coef`` it is :attr:`rival_margin`).
+
+        With the selection's design ``theta`` and derivatives ``y``, ``reference`` is
+        scored too (the criterion at the selection's ``delta`` and correlation time),
+        and the margin is measured from it where it scores better than the chosen
+        candidate: a term the final selection put back (and the ones it made
+        redundant) can make the reported model better than every candidate, and the
+        chosen candidate is then a rival at the difference, not at zero."""
         pooled = np.concatenate([self.candidates, self.subsets])
         scores = np.concatenate([self.scores, self.subset_scores])
-        return score_margin(scores, pooled, _pick(scores), rivals=True, reference=reference)
+        own = None
+        if theta is not None:
+            n = reference.shape[1]
+            losses = np.array(
+                [_candidate_loss(theta, y[:, k], reference[:, k], self.delta[k]) for k in range(n)]
+            )
+            tau = np.ones(n) if self.tau is None else self.tau
+            own = _scored(theta.shape[0], losses[None], reference[None], self.delta, tau)[0]
+        return score_margin(
+            scores, pooled, _pick(scores), rivals=True, reference=reference, reference_score=own
+        )
 
     def __repr__(self) -> str:
         return (
@@ -582,7 +599,9 @@ def _rival(candidate, chosen_coef) -> bool:
     return bool(np.any(change))
 
 
-def score_margin(scores, candidates, index, rivals: bool = False, reference=None) -> np.ndarray:
+def score_margin(
+    scores, candidates, index, rivals: bool = False, reference=None, reference_score=None
+) -> np.ndarray:
     """Per column, the score of the best candidate whose support differs from the
     chosen one (``index``) minus the chosen score; ``inf`` when none differs.  With
     ``rivals``, only the candidates that are another model count: they leave out a
@@ -597,8 +616,9 @@ def score_margin(scores, candidates, index, rivals: bool = False, reference=None
     ``reference`` (p, n), the model finally reported where later stages changed the
     chosen one (a term dropped as insignificant or as bias), takes the chosen
     candidate's place in deciding which candidates differ from it and are another
-    model; the margin is still measured from the chosen (best) score.  The candidate
-    without the dropped term is then the reported model, not a rival of it.
+    model; the margin is still measured from the chosen (best) score, or from
+    ``reference_score`` (n,), the reported model's own score, where that is lower.  The
+    candidate without the dropped term is then the reported model, not a rival of it.
 
     ``scores`` (L, n), ``candidates`` (L, p, n), ``index`` (n,).
     """
@@ -614,7 +634,10 @@ def score_margin(scores, candidates, index, rivals: bool = False, reference=None
             and (not rivals or _rival(candidates[i, :, k], chosen_coef))
         ]  # fmt: skip
         if other:
-            out[k] = np.min(scores[other, k]) - scores[index[k], k]
+            base = scores[index[k], k]
+            if reference_score is not None and reference_score[k] < base:
+                base = reference_score[k]
+            out[k] = np.min(scores[other, k]) - base
     return out
 
 

@@ -13,6 +13,9 @@ refit of the selected support:
 * :func:`prune` -- drops the selected term with the smallest robust t while it is below
   the bar, per equation, in equations with a term that clears
   ``SIGNIFICANCE_ESTIMATED``.
+* Then the terms the selection left out are tested (:func:`missed_terms`): the one
+  with the largest robust score t in an equation, at ``ADD_SIGNIFICANCE`` or more, is
+  put in and both stages run again; it stays when they keep it.
 
 Read more in the user guide: :doc:`/guide/final`.
 """
@@ -34,9 +37,24 @@ from .bias import (
 from .lam_path import pilot_budget
 from .problem import Problem
 from .refit import STAGE_ROUNDS, debias
-from .significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t
+from .significance import SIGNIFICANCE, SIGNIFICANCE_ESTIMATED, robust_t, score_t
 
-__all__ = ["FinalSelection", "final_selection", "prune", "significance_bar"]
+__all__ = [
+    "ADD_SIGNIFICANCE",
+    "FinalSelection",
+    "final_selection",
+    "missed_terms",
+    "prune",
+    "significance_bar",
+]
+
+#: Robust score t (:func:`~robust_sindy.selection.significance.score_t`) at which a term
+#: the selection left out is tried in the model: five standard errors, as a term under
+#: the noise floor must show with measured derivatives.  An L1 path can leave out a
+#: true term for a few correlated ones that stand in for it (its products with the
+#: squares of an oscillating state), and no drop brings it back; the tried term stays
+#: only if the final selection's own tests keep it.
+ADD_SIGNIFICANCE = SIGNIFICANCE
 
 
 def significance_bar(measured: bool) -> float:
@@ -60,14 +78,18 @@ class FinalSelection:
         Coefficient over its truncation bias of each term dropped for it.
     pruned : ndarray
         Robust t of each term pruned.
+    added : ndarray
+        Robust score t of each term the selection had left out and the final selection
+        put in (:func:`missed_terms`).
 
-    All NaN where nothing was dropped for that reason.
+    All NaN where nothing was dropped (added) for that reason.
     """
 
     coef: np.ndarray
     bias_ratio: np.ndarray
     truncation_ratio: np.ndarray
     pruned: np.ndarray
+    added: np.ndarray
 
 
 class _Refit:
@@ -118,12 +140,68 @@ def final_selection(
     refit = _Refit(kept, delta, method, solver, options)
     error = None if reference is None else kept.scaler.y(kept.y - reference)
     bar = significance_bar(measured)
-    coef, ratio, truncation = _drops(
-        kept, design, coef, delta_s, refit, selection_tol, floor_tol, measured, error, bar,
-        method,
-    )  # fmt: skip
-    coef, pruned = prune(kept, design, coef, delta_s, refit, bar)
-    return FinalSelection(coef, ratio, truncation, pruned)
+    selected = coef != 0
+
+    def stages(coef):
+        coef, ratio, truncation = _drops(
+            kept, design, coef, delta_s, refit, selection_tol, floor_tol, measured, error,
+            bar, method,
+        )  # fmt: skip
+        coef, pruned = prune(kept, design, coef, delta_s, refit, bar)
+        return FinalSelection(coef, ratio, truncation, pruned, np.full(coef.shape, np.nan))
+
+    return missed_terms(kept, design, stages(coef), delta_s, stages, refit, ~selected)
+
+
+def missed_terms(
+    kept: Problem, th, final: FinalSelection, delta_s, stages, refit, candidates
+) -> FinalSelection:
+    """Put back terms the selection left out that the final selection's tests keep.
+
+    Per round, in every equation, the ``candidates`` term (bool, p x n: those the
+    selection left out; a term it selected and a stage dropped is not tried again) with
+    the largest robust score t (:func:`~.significance.score_t` at ``final.coef``) is put
+    in where that t reaches ``ADD_SIGNIFICANCE``, those equations are refitted
+    (``refit(coef, cols)``) and ``stages`` (the drops and the pruning, from
+    coefficients to a :class:`FinalSelection`) run again.  An equation
+    keeps the outcome where the term survived it; each term is tried once, for at most
+    ``STAGE_ROUNDS`` rounds.  Returns the final selection with the terms kept in
+    ``added`` (their score t) and the other arrays merged.
+    """
+    scaler, yk, segments = kept.scaler, kept.y_s, kept.segments
+    open_ = np.array(candidates, dtype=bool)
+    every = np.arange(final.coef.shape[1])
+    for _ in range(STAGE_ROUNDS):
+        coef = final.coef
+        t = score_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
+        t = np.where(open_ & (coef == 0), t, np.nan)
+        best = np.argmax(np.nan_to_num(t, nan=-np.inf), axis=0)
+        cols = np.flatnonzero(t[best, every] >= ADD_SIGNIFICANCE)
+        if cols.size == 0:
+            break
+        open_[best[cols], cols] = False
+        trial = coef.copy()
+        trial[best[cols], cols] = 1.0  # a placeholder: the refit fits the support
+        tried = stages(refit(trial, cols))
+        kept_cols = cols[tried.coef[best[cols], cols] != 0]
+        if kept_cols.size == 0:
+            continue
+        merged = []
+        for old, new in zip(
+            (final.bias_ratio, final.truncation_ratio, final.pruned, final.added),
+            (tried.bias_ratio, tried.truncation_ratio, tried.pruned, tried.added),
+            strict=True,
+        ):
+            out = old.copy()
+            out[:, kept_cols] = np.where(
+                np.isnan(new[:, kept_cols]), old[:, kept_cols], new[:, kept_cols]
+            )
+            merged.append(out)
+        merged[3][best[kept_cols], kept_cols] = t[best[kept_cols], kept_cols]
+        coef = coef.copy()
+        coef[:, kept_cols] = tried.coef[:, kept_cols]
+        final = FinalSelection(coef, *merged)
+    return final
 
 
 def _drops(kept, th, coef, delta_s, refit, tol, floor_tol, measured, error, bar, method):

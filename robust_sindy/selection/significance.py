@@ -23,7 +23,14 @@ from ..core.losses import huber_psi
 from ..core.statistics import correlation_time
 from ..core.validation import check_problem
 
-__all__ = ["SIGNIFICANCE", "SIGNIFICANCE_ESTIMATED", "VISIBLE", "robust_t", "sandwich_variance"]
+__all__ = [
+    "SIGNIFICANCE",
+    "SIGNIFICANCE_ESTIMATED",
+    "VISIBLE",
+    "robust_t",
+    "sandwich_variance",
+    "score_t",
+]
 
 #: Robust t statistic below which a term under the noise floor is not vouched for:
 #: five standard errors, the conventional threshold for a discovery when the error
@@ -90,4 +97,47 @@ def robust_t(theta, xdot, coef, delta, segments=None) -> np.ndarray:
         with np.errstate(divide="ignore", invalid="ignore"):
             t = np.abs(coef[sel, k]) / np.sqrt(var)
         out[sel, k] = np.where(var > 0, t, np.inf)
+    return out[:, 0] if one_d else out
+
+
+def score_t(theta, xdot, coef, delta, segments=None) -> np.ndarray:
+    """Robust score statistic (p, n) of every term outside the support (NaN on it).
+
+    The test of adding term ``j`` to the fitted model without refitting it (Rao's score
+    test): with ``r`` the residual, ``psi`` Huber's score, ``W`` the inliers and
+    ``theta_jp`` the part of ``theta_j`` ``W``-orthogonal to the selected columns, the
+    score ``theta_jp^T psi(r)`` over its standard error ``sqrt(tau sum theta_jp^2
+    psi(r)^2)`` (``tau`` as in :func:`robust_t`).  Near zero for a term the residuals do
+    not see; it measures what a term would explain that the selected ones leave, and so
+    finds a true term that the path left out for a few correlated ones standing in for
+    it only partly.  Terms the inliers cannot tell from the selected ones get NaN.
+    Arguments as :func:`robust_t`.
+    """
+    theta, y, one_d = check_problem(theta, xdot)
+    coef = np.asarray(coef, dtype=float).reshape(theta.shape[1], y.shape[1])
+    delta = np.broadcast_to(np.asarray(delta, dtype=float), (y.shape[1],))
+    sq = theta**2
+    out = np.full(coef.shape, np.nan)
+    for k in range(y.shape[1]):
+        sel = np.flatnonzero(coef[:, k])
+        a = theta[:, sel]
+        r = y[:, k] - a @ coef[sel, k]
+        psi = huber_psi(r, delta[k])
+        tau = correlation_time(psi[:, None], segments)[0]
+        inl = np.abs(r) <= delta[k]
+        w2 = psi**2
+        inner = inl.astype(float) @ sq  # sum of theta_j^2 over the inliers
+        score, var, free = theta.T @ psi, w2 @ sq, inner.copy()
+        if sel.size:
+            # g: the W-projection of every column on the selected ones (s, p); the
+            # sums of theta_jp = theta_j - a g_j expanded, not formed (m x p per term).
+            cross = a[inl].T @ theta[inl]
+            g = np.linalg.lstsq(a[inl].T @ a[inl], cross, rcond=None)[0]
+            aw = a * w2[:, None]
+            score -= g.T @ (a.T @ psi)
+            var += np.einsum("sj,sj->j", g, (aw.T @ a) @ g - 2.0 * (aw.T @ theta))
+            free -= np.einsum("sj,sj->j", g, cross)
+        # Columns (nearly) inside the selected ones' span on the inliers: no test.
+        ok = (coef[:, k] == 0) & (free > 1e-10 * inner) & (var > 0)
+        out[ok, k] = np.abs(score[ok]) / np.sqrt(tau * var[ok])
     return out[:, 0] if one_d else out
