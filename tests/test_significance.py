@@ -68,18 +68,26 @@ def test_off_the_support_nan_and_rank_deficient_zero():
     assert np.all(robust_t(theta, y[:, None], coef, 1.0)[[0, 1, 3], 0] == 0.0)
 
 
+@pytest.mark.parametrize("statistic", ["robust_t", "score_t"])
 @settings(max_examples=30, deadline=None)
 @given(
     st.lists(st.floats(-3, 3), min_size=4, max_size=4),
     st.floats(-3, 3),
     st.integers(0, 10),
 )
-def test_the_statistic_is_unit_free(log_cols, log_y, seed):
+def test_the_statistic_is_unit_free(statistic, log_cols, log_y, seed):
+    # robust_t on every term of the least-squares fit; score_t of the two terms left out
+    # of the fit on the first two.
+    from robust_sindy.selection import significance
+
     theta, y, _ = _regression(seed)
-    coef = np.linalg.lstsq(theta, y, rcond=None)[0]
+    support = [0, 1, 2, 3] if statistic == "robust_t" else [0, 1]
+    coef = np.zeros(4)
+    coef[support] = np.linalg.lstsq(theta[:, support], y, rcond=None)[0]
     c, s = 10.0 ** np.array(log_cols), 10.0**log_y
-    t = robust_t(theta, y, coef, 0.7)
-    t_scaled = robust_t(theta * c, s * y, s * coef / c, 0.7 * s)
+    t = getattr(significance, statistic)(theta, y, coef, 0.7)
+    t_scaled = getattr(significance, statistic)(theta * c, s * y, s * coef / c, 0.7 * s)
+    assert np.isfinite(t).sum() == (4 if statistic == "robust_t" else 2)
     assert np.allclose(t, t_scaled, rtol=1e-6, equal_nan=True)
 
 
@@ -469,24 +477,6 @@ def test_the_score_t_is_nan_for_a_term_the_support_spans():
     theta = np.column_stack([theta, theta[:, 0] - 2 * theta[:, 1]])
     t = score_t(theta, y, _huber_on(theta, y, [0, 1, 3], 1.0), 1.0)
     assert np.isnan(t[[0, 1, 3, 4]]).all() and np.isfinite(t[2])
-
-
-@settings(max_examples=30, deadline=None)
-@given(
-    st.lists(st.floats(-3, 3), min_size=4, max_size=4),
-    st.floats(-3, 3),
-    st.integers(0, 10),
-)
-def test_the_score_t_is_unit_free(log_cols, log_y, seed):
-    from robust_sindy.selection.significance import score_t
-
-    theta, y, _ = _regression(seed)
-    coef = np.zeros(4)
-    coef[[0, 1]] = np.linalg.lstsq(theta[:, [0, 1]], y, rcond=None)[0]
-    c, s = 10.0 ** np.array(log_cols), 10.0**log_y
-    t = score_t(theta, y, coef, 0.7)
-    t_scaled = score_t(theta * c, s * y, s * coef / c, 0.7 * s)
-    assert np.allclose(t, t_scaled, rtol=1e-6, equal_nan=True)
 
 
 def _stand_in_problem(seed, weight):

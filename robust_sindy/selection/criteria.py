@@ -183,11 +183,9 @@ class Selection:
         own = None
         if theta is not None:
             n = reference.shape[1]
-            losses = np.array(
-                [_candidate_loss(theta, y[:, k], reference[:, k], self.delta[k]) for k in range(n)]
-            )
             tau = np.ones(n) if self.tau is None else self.tau
-            own = _scored(theta.shape[0], losses[None], reference[None], self.delta, tau)[0]
+            every = np.ones((1, n), dtype=bool)
+            own = _scores(theta, y, reference[None], every, self.delta, tau)[0]
         return score_margin(
             scores, pooled, _pick(scores), rivals=True, reference=reference, reference_score=own
         )

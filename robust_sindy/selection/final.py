@@ -174,7 +174,7 @@ def missed_terms(
     for _ in range(STAGE_ROUNDS):
         coef = final.coef
         t = score_t(th, yk, scaler.coef_to_standard(coef), delta_s, segments)
-        t = np.where(open_ & (coef == 0), t, np.nan)
+        t = np.where(open_, t, np.nan)  # NaN on the support already
         best = np.argmax(np.nan_to_num(t, nan=-np.inf), axis=0)
         cols = np.flatnonzero(t[best, every] >= ADD_SIGNIFICANCE)
         if cols.size == 0:
@@ -186,21 +186,15 @@ def missed_terms(
         kept_cols = cols[tried.coef[best[cols], cols] != 0]
         if kept_cols.size == 0:
             continue
-        merged = []
-        for old, new in zip(
-            (final.bias_ratio, final.truncation_ratio, final.pruned, final.added),
-            (tried.bias_ratio, tried.truncation_ratio, tried.pruned, tried.added),
-            strict=True,
-        ):
-            out = old.copy()
-            out[:, kept_cols] = np.where(
-                np.isnan(new[:, kept_cols]), old[:, kept_cols], new[:, kept_cols]
-            )
-            merged.append(out)
-        merged[3][best[kept_cols], kept_cols] = t[best[kept_cols], kept_cols]
+        merged = {}
+        for name in ("bias_ratio", "truncation_ratio", "pruned", "added"):
+            old, new = getattr(final, name)[:, kept_cols], getattr(tried, name)[:, kept_cols]
+            merged[name] = getattr(final, name).copy()
+            merged[name][:, kept_cols] = np.where(np.isnan(new), old, new)
+        merged["added"][best[kept_cols], kept_cols] = t[best[kept_cols], kept_cols]
         coef = coef.copy()
         coef[:, kept_cols] = tried.coef[:, kept_cols]
-        final = FinalSelection(coef, *merged)
+        final = FinalSelection(coef, **merged)
     return final
 
 

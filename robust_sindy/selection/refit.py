@@ -10,6 +10,7 @@ from ..fitting import fit
 
 __all__ = [
     "STAGE_ROUNDS",
+    "added_term_sums",
     "debias",
     "one_step_contributions",
     "refit_column",
@@ -102,6 +103,21 @@ def debias(theta, y, coef, delta, method: str, solver, options: dict) -> np.ndar
     )
 
 
+def added_term_sums(theta, sel, psi, w):
+    """What adding each column ``theta_j`` to the selected columns ``theta[:, sel]`` of
+    a Huber fit (score ``psi`` at its residuals, weights ``w``: 1 inside ``delta``, 0
+    outside) has to work with, from ``theta_jp = theta_j - theta[:, sel] g_j``, the part
+    of ``theta_j`` ``W``-orthogonal to the selected columns (expanded, not formed: m x p
+    per column).  Returns ``g`` (s, p), ``theta_jp^T psi`` (p,), ``theta_jp^T W
+    theta_jp`` (p,) and ``theta_j^T W theta_j`` (p,)."""
+    tw = theta * w[:, None]
+    b = tw[:, sel].T @ theta  # (s, p)
+    g = np.linalg.lstsq(b[:, sel], b, rcond=None)[0] if sel.size else b
+    inner = np.einsum("ij,ij->j", tw, theta)
+    num = theta.T @ psi - g.T @ (theta[:, sel].T @ psi)
+    return g, num, inner - np.einsum("ij,ij->j", b, g), inner
+
+
 def one_step_contributions(theta, xdot, coef, delta) -> np.ndarray:
     """Relative contribution each unselected term would have if added (p, n; NaN on the
     support).
@@ -122,13 +138,7 @@ def one_step_contributions(theta, xdot, coef, delta) -> np.ndarray:
         sel = np.flatnonzero(coef[:, k])
         r = y[:, k] - theta @ coef[:, k]
         psi = huber_psi(r, delta[k])
-        w = (np.abs(r) <= delta[k]).astype(float)
-        tw = theta * w[:, None]
-        a = theta[:, sel]
-        b = tw[:, sel].T @ theta  # (s, p)
-        gib = np.linalg.lstsq(b[:, sel], b, rcond=None)[0] if sel.size else b
-        num = theta.T @ psi - gib.T @ (a.T @ psi)
-        den = np.einsum("ij,ij->j", tw, theta) - np.einsum("ij,ij->j", b, gib)
+        _, num, den, _ = added_term_sums(theta, sel, psi, (np.abs(r) <= delta[k]).astype(float))
         ok = (coef[:, k] == 0) & (den > 1e-10 * col**2)
         ynorm = max(float(np.linalg.norm(y[:, k])), np.finfo(float).tiny)
         out[ok, k] = np.abs(num[ok] / den[ok]) * col[ok] / ynorm

@@ -22,6 +22,7 @@ import numpy as np
 from ..core.losses import huber_psi
 from ..core.statistics import correlation_time
 from ..core.validation import check_problem
+from .refit import added_term_sums
 
 __all__ = [
     "SIGNIFICANCE",
@@ -124,19 +125,11 @@ def score_t(theta, xdot, coef, delta, segments=None) -> np.ndarray:
         r = y[:, k] - a @ coef[sel, k]
         psi = huber_psi(r, delta[k])
         tau = correlation_time(psi[:, None], segments)[0]
-        inl = np.abs(r) <= delta[k]
-        w2 = psi**2
-        inner = inl.astype(float) @ sq  # sum of theta_j^2 over the inliers
-        score, var, free = theta.T @ psi, w2 @ sq, inner.copy()
-        if sel.size:
-            # g: the W-projection of every column on the selected ones (s, p); the
-            # sums of theta_jp = theta_j - a g_j expanded, not formed (m x p per term).
-            cross = a[inl].T @ theta[inl]
-            g = np.linalg.lstsq(a[inl].T @ a[inl], cross, rcond=None)[0]
-            aw = a * w2[:, None]
-            score -= g.T @ (a.T @ psi)
-            var += np.einsum("sj,sj->j", g, (aw.T @ a) @ g - 2.0 * (aw.T @ theta))
-            free -= np.einsum("sj,sj->j", g, cross)
+        w = (np.abs(r) <= delta[k]).astype(float)
+        g, score, free, inner = added_term_sums(theta, sel, psi, w)
+        # sum theta_jp^2 psi^2, expanded as the other sums are
+        aw = a * (psi**2)[:, None]
+        var = psi**2 @ sq + np.einsum("sj,sj->j", g, (aw.T @ a) @ g - 2.0 * (aw.T @ theta))
         # Columns (nearly) inside the selected ones' span on the inliers: no test.
         ok = (coef[:, k] == 0) & (free > 1e-10 * inner) & (var > 0)
         out[ok, k] = np.abs(score[ok]) / np.sqrt(tau * var[ok])
