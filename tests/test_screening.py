@@ -109,6 +109,45 @@ def test_a_channels_screen_does_not_depend_on_the_other_channels():
     assert count == 66 and not differ, differ
 
 
+def test_the_rounds_of_withdrawal_measure_only_the_channels_still_withdrawing(monkeypatch):
+    """Step 4's rounds re-measure the local errors of the channels that withdrew a flag
+    in the round before, not of every channel; each channel's result is still what it
+    gets screened alone.  Records of 6 to 12 channels, a third of them with fast
+    excursions sampled by a few samples (bumps of 1 to 2.5 samples' width), which the
+    local fits do not resolve."""
+    from robust_sindy.timeseries import temporal
+
+    measured: list[int] = []
+    errors = temporal._errors
+
+    def counted(x, *args):
+        measured.append(x.shape[1])
+        return errors(x, *args)
+
+    monkeypatch.setattr(temporal, "_errors", counted)
+    partial = 0
+    for seed in range(3):
+        rng = np.random.default_rng([seed, 43])
+        m, n = 1500, 6 + 3 * seed
+        t = np.linspace(0.0, 30.0, m)
+        x = np.sin(np.outer(t, rng.uniform(0.2, 3.0, n)) + rng.uniform(0.0, 6.0, n))
+        x += 0.01 * rng.normal(size=x.shape)
+        for k in rng.choice(n, n // 3, replace=False):
+            for i in rng.integers(50, m - 50, 5):
+                width = rng.uniform(1.0, 2.5)
+                x[:, k] += 3.0 * np.exp(-0.5 * ((np.arange(m) - i) / width) ** 2)
+        measured.clear()
+        together = temporal_screen(x, t)
+        rounds = measured[2:]  # after the candidates' and the final confirmation
+        assert rounds and all(0 < c < n for c in rounds), (n, measured)
+        partial += len(rounds)
+        for k in range(n):
+            alone = temporal_screen(x[:, [k]], t)
+            assert np.array_equal(alone.flags[:, 0], together.flags[:, k])
+            assert np.allclose(alone.repaired[:, 0], together.repaired[:, k], rtol=1e-12, atol=0)
+    assert partial >= 3
+
+
 def test_local_polynomial_derivative_ignores_masked_outliers():
     t, clean, x = _smooth(noise=0.0)
     true = np.column_stack(

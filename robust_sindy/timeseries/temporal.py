@@ -362,16 +362,17 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
     given, centre = x, np.median(x, axis=0)
     x = x - centre
 
-    def gross(err):
+    def gross(err, columns=slice(None)):
         # The running median of the errors is the fit's smooth bias (e.g. along a fast
         # part of the trajectory); an outlier, alone or in a short group, stands out of it.
         err = err - running_median(err, _BIAS_WINDOW)
-        scale = np.maximum(robust_scale(err), floor)
+        scale = np.maximum(robust_scale(err), floor[columns])
         return np.abs(err) / (cutoff * np.maximum(scale, smooth_local_scale(err, scale_half)))
 
-    def ratio_of(flags):
-        err, pred = _errors(x, t, flags, h, degree)
-        return gross(err), pred, err
+    def ratio_of(flags, columns=slice(None)):
+        # Of the components ``columns`` only (every step is per component).
+        err, pred = _errors(x[:, columns], t, flags[:, columns], h, degree)
+        return gross(err, columns), pred, err
 
     if x.shape[0] > 2 * _LTS_HALF + 1:
         # 1. Candidates: gross errors from a local high-breakdown fit, which gross
@@ -405,9 +406,9 @@ def _screen_one(x, t, h, degree, cutoff, scale_half):
         if not going.any():
             break
         flags &= ~drop
-        ratio, again, again_err = ratio_of(flags)
-        pred[:, going], err[:, going] = again[:, going], again_err[:, going]
-        flags[:, going] &= ratio[:, going] > 1
+        cols = np.flatnonzero(going)
+        ratio, pred[:, cols], err[:, cols] = ratio_of(flags, cols)
+        flags[:, cols] &= ratio > 1
     return flags, np.where(flags, pred + centre, given), _unflagged_scale(err, flags)
 
 
