@@ -96,17 +96,24 @@ def test_a_channels_screen_does_not_depend_on_the_other_channels():
     had its own rounds, 6 of them differed, repaired values by up to 0.23)."""
     differ, count = [], 0
     for t, x in _glitched_records():
-        together = temporal_screen(x, t)
-        for k in range(x.shape[1]):
-            alone = temporal_screen(x[:, [k]], t)
-            count += 1
-            if not (
-                np.array_equal(alone.flags[:, 0], together.flags[:, k])
-                and np.allclose(alone.repaired[:, 0], together.repaired[:, k], rtol=1e-12, atol=0)
-                and np.isclose(alone.scale[0], together.scale[k], rtol=1e-12, atol=0)
-            ):
-                differ.append((count, k))
+        differ += [(count + k + 1, k) for k in _differ_alone(x, t, temporal_screen(x, t))]
+        count += x.shape[1]
     assert count == 66 and not differ, differ
+
+
+def _differ_alone(x, t, together) -> list[int]:
+    """The channels of ``x`` whose flags, repaired values or noise level screened alone
+    differ from ``together``, the screen of all of them."""
+    differ = []
+    for k in range(x.shape[1]):
+        alone = temporal_screen(x[:, [k]], t)
+        if not (
+            np.array_equal(alone.flags[:, 0], together.flags[:, k])
+            and np.allclose(alone.repaired[:, 0], together.repaired[:, k], rtol=1e-12, atol=0)
+            and np.isclose(alone.scale[0], together.scale[k], rtol=1e-12, atol=0)
+        ):
+            differ.append(k)
+    return differ
 
 
 def test_the_rounds_of_withdrawal_measure_only_the_channels_still_withdrawing(monkeypatch):
@@ -141,10 +148,7 @@ def test_the_rounds_of_withdrawal_measure_only_the_channels_still_withdrawing(mo
         rounds = measured[2:]  # after the candidates' and the final confirmation
         assert rounds and all(0 < c < n for c in rounds), (n, measured)
         partial += len(rounds)
-        for k in range(n):
-            alone = temporal_screen(x[:, [k]], t)
-            assert np.array_equal(alone.flags[:, 0], together.flags[:, k])
-            assert np.allclose(alone.repaired[:, 0], together.repaired[:, k], rtol=1e-12, atol=0)
+        assert not _differ_alone(x, t, together)
     assert partial >= 3
 
 
