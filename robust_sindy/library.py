@@ -187,6 +187,15 @@ class BaseLibrary(TransformerMixin, BaseEstimator):
     def fit_transform(self, x, y=None, input_names=None) -> np.ndarray:
         return self.fit(x, input_names=input_names).transform(x)
 
+    def input_columns(self, k: int) -> np.ndarray | None:
+        """The features that may depend on input ``k`` (indices), or None where the
+        library cannot tell (then any of them may)."""
+        return None
+
+    def transform_columns(self, x, columns) -> np.ndarray:
+        """``transform(x)[:, columns]``; a library that can form only those does so."""
+        return self.transform(x)[:, columns]
+
     def term_codes(self, args: Sequence[str]) -> tuple[list[str], dict]:
         """Each feature as a Python expression of the input codes ``args``.
 
@@ -242,12 +251,22 @@ class PolynomialLibrary(BaseLibrary):
         return self
 
     def transform(self, x) -> np.ndarray:
+        self._check_fitted()
+        return self.transform_columns(x, range(self.n_output_features_))
+
+    def input_columns(self, k: int) -> np.ndarray:
+        self._check_fitted()
+        return np.array([j for j, combo in enumerate(self.powers_) if k in combo], dtype=int)
+
+    def transform_columns(self, x, columns) -> np.ndarray:
         x = self._check_transform_input(x)
         # Each monomial is formed as a contiguous row of the transpose (a column of a
         # row-major array is strided), the factors multiplied in the order of its powers.
         inputs = np.ascontiguousarray(x.T)
-        out = np.empty((self.n_output_features_, x.shape[0]))
-        for j, combo in enumerate(self.powers_):
+        columns = list(columns)
+        out = np.empty((len(columns), x.shape[0]))
+        for j, c in enumerate(columns):
+            combo = self.powers_[c]
             if not combo:
                 out[j] = 1.0
                 continue
@@ -326,9 +345,19 @@ class FourierLibrary(BaseLibrary):
         return self
 
     def transform(self, x) -> np.ndarray:
+        self._check_fitted()
+        return self.transform_columns(x, range(self.n_output_features_))
+
+    def input_columns(self, k: int) -> np.ndarray:
+        self._check_fitted()
+        return np.array([c for c, (_, _, i) in enumerate(self.terms_) if i == k], dtype=int)
+
+    def transform_columns(self, x, columns) -> np.ndarray:
         x = self._check_transform_input(x)
-        out = np.empty((x.shape[0], self.n_output_features_))
-        for col, (f, j, i) in enumerate(self.terms_):
+        columns = list(columns)
+        out = np.empty((x.shape[0], len(columns)))
+        for col, c in enumerate(columns):
+            f, j, i = self.terms_[c]
             out[:, col] = FUNCTIONS[f](j * x[:, i])
         return out
 
@@ -522,6 +551,33 @@ class ConcatLibrary(BaseLibrary):
     def transform(self, x) -> np.ndarray:
         x = self._check_transform_input(x)
         return np.hstack([lib.transform(x) for lib in self.libraries_])
+
+    def input_columns(self, k: int) -> np.ndarray | None:
+        self._check_fitted()
+        parts, start = [], 0
+        for lib in self.libraries_:
+            cols = lib.input_columns(k)
+            if cols is None:
+                return None
+            parts.append(start + np.asarray(cols, dtype=int))
+            start += lib.n_output_features_
+        return np.concatenate(parts)
+
+    def transform_columns(self, x, columns) -> np.ndarray:
+        x = self._check_transform_input(x)
+        columns = np.asarray(columns, dtype=int).reshape(-1)
+        order = np.argsort(columns, kind="stable")  # each library's columns in turn
+        ordered = columns[order]
+        out = np.empty((x.shape[0], columns.size))
+        done, start = 0, 0
+        for lib in self.libraries_:
+            end = start + lib.n_output_features_
+            mine = ordered[(ordered >= start) & (ordered < end)] - start
+            if mine.size:
+                out[:, order[done : done + mine.size]] = lib.transform_columns(x, mine)
+                done += mine.size
+            start = end
+        return out
 
     def get_feature_names(self, input_names=None) -> list[str]:
         self._check_fitted()

@@ -406,3 +406,39 @@ def test_library_noise_of_a_many_state_library_takes_a_few_libraries_of_memory()
     c = list(noise.cols[k]).index(j)
     np.testing.assert_allclose(noise.values[k][:, c], sigma[k] * x[:, 7] / scale[j], rtol=1e-6)
     assert j not in noise.cols[5]
+
+
+def test_library_noise_formed_on_the_columns_of_each_state_is_the_whole_librarys():
+    # The central differences formed only on the columns that hold each state (where
+    # the library tells them) are bit for bit those of the whole library's, for a
+    # polynomial library alone and beside a library that cannot tell (whole library).
+    from types import SimpleNamespace
+
+    from robust_sindy import CustomLibrary, FourierLibrary
+    from robust_sindy.selection.bias import noise_columns
+
+    class Opaque:  # the same library, without input_columns
+        def __init__(self, library):
+            self.library = library
+
+        def transform(self, x):
+            return self.library.transform(x)
+
+    rng = np.random.default_rng(1)
+    x = rng.normal(size=(150, 5)) + 1.0
+    sigma = rng.uniform(0.01, 0.1, size=5)
+    temporal = SimpleNamespace(scale=sigma, repaired=x)
+    for library in (
+        PolynomialLibrary(degree=3),
+        PolynomialLibrary(degree=2, inputs=[0, 2]) + PolynomialLibrary(degree=1),
+        PolynomialLibrary(degree=2) + CustomLibrary(["sin(x0) * x3"]),
+        PolynomialLibrary(degree=1) + FourierLibrary(n_frequencies=2, inputs=[1, 4]),
+    ):
+        library.fit(x)
+        scale = rng.uniform(0.5, 2.0, size=library.n_output_features_)
+        fast = noise_columns(library, x, temporal, scale)
+        whole = noise_columns(Opaque(library), x, temporal, scale)
+        assert fast.p == whole.p == library.n_output_features_
+        for k in range(5):
+            np.testing.assert_array_equal(fast.cols[k], whole.cols[k])
+            np.testing.assert_array_equal(fast.values[k], whole.values[k])

@@ -2,7 +2,7 @@ import numpy as np
 import pytest
 from sklearn.base import clone
 
-from robust_sindy import CustomLibrary, PolynomialLibrary
+from robust_sindy import CustomLibrary, FourierLibrary, PolynomialLibrary
 from robust_sindy.systems import Drone
 
 
@@ -101,3 +101,34 @@ def test_libraries_compose_and_clone():
 def test_bad_library_input_names_the_argument(make, match):
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_a_librarys_columns_of_an_input_and_its_columns_alone():
+    rng = np.random.default_rng(0)
+    x = rng.normal(size=(40, 3))
+    poly = PolynomialLibrary(degree=2).fit(x)
+    names = poly.get_feature_names()
+    assert [names[j] for j in poly.input_columns(1)] == ["x1", "x0*x1", "x1^2", "x1*x2"]
+    both = (PolynomialLibrary(degree=1, inputs=[2]) + CustomLibrary(["sin(x0)"])).fit(x)
+    assert both.input_columns(0) is None  # the custom library cannot tell
+    both = (PolynomialLibrary(degree=1, inputs=[2]) + PolynomialLibrary(degree=2)).fit(x)
+    np.testing.assert_array_equal(both.input_columns(2), [1, 5, 8, 10, 11])
+    fourier = FourierLibrary(n_frequencies=2, inputs=[0, 2]).fit(x)
+    names = fourier.get_feature_names()
+    assert [names[j] for j in fourier.input_columns(2)] == [
+        "sin(x2)",
+        "cos(x2)",
+        "sin(2*x2)",
+        "cos(2*x2)",
+    ]
+    assert fourier.input_columns(1).size == 0
+    np.testing.assert_array_equal(
+        fourier.transform_columns(x, [3, 0]), fourier.transform(x)[:, [3, 0]]
+    )
+    full = both.transform(x)
+    for cols in ([11, 0, 5, 2], [3], [], list(range(full.shape[1]))[::-1]):
+        np.testing.assert_array_equal(both.transform_columns(x, cols), full[:, cols])
+        np.testing.assert_array_equal(
+            poly.transform_columns(x, [c for c in cols if c < 10]),
+            poly.transform(x)[:, [c for c in cols if c < 10]],
+        )

@@ -142,6 +142,24 @@ def test_the_scaling_run_times_and_checks_each_method():
     assert "| 5 (21) | 1500 | clean | " in text and "exact" in text
 
 
+def test_a_scaling_size_may_give_its_sampling_step(monkeypatch):
+    # states:samples:step: the record sampled that far apart, and the table says so.
+    given = []
+
+    def spy(method, system, t, x, x_dot, seed=0):
+        given.append(t.copy())
+        return system.coef.copy(), []
+
+    monkeypatch.setattr(zoo, "_fit_method", spy)
+    rows = zoo.run_scaling(((5, 300, 0.05), (5, 300)), families=("clean",),
+                           methods=("stlsq",), progress=False)  # fmt: skip
+    np.testing.assert_allclose(np.diff(given[0]), 0.05, rtol=1e-9)
+    np.testing.assert_allclose(np.diff(given[1]), 0.01, rtol=1e-9)
+    assert [r.step for r in rows] == [0.05, 0.01]
+    text = zoo.scaling_table(rows)
+    assert "| 5 (21) | 300 (step 0.05) | clean | " in text and "| 5 (21) | 300 | clean | " in text
+
+
 def test_the_scaling_run_from_noisy_states_gives_both_methods_the_states_alone(monkeypatch):
     given = []
     fit_method = zoo._fit_method

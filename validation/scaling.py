@@ -8,10 +8,12 @@ thread (:func:`robust_sindy.zoo.run_scaling`); reports time, the ratio of the ti
 whether each found exactly the true support and, with ``--memory``, the peak memory of
 ``HuberSINDy()`` over the library's own size (a second, traced run).
 
-    python validation/scaling.py [--sizes 10:4000,20:4000,40:12000] [--families clean,rows]
+    python validation/scaling.py [--sizes 10:4000,20:4000,40:12000,100:12000:0.1]
+                                 [--families clean,rows]
                                  [--derivatives exact|states] [--noise 0.03]
                                  [--memory] [--out validation/results/scaling]
 
+A size is states:samples (sampling step 0.01, the zoo's) or states:samples:step.
 With ``--derivatives states`` both methods get the states alone (``--noise``: Gaussian
 noise of that share of each state's spread on every reading).
 """
@@ -27,10 +29,22 @@ from robust_sindy import zoo
 from robust_sindy.flows import write_rows
 
 
+def _size(text: str, parser) -> tuple:
+    """``states:samples`` or ``states:samples:step`` as a tuple."""
+    parts = text.split(":")
+    try:
+        if len(parts) not in (2, 3):
+            raise ValueError
+        size = (int(parts[0]), int(parts[1]), *(float(v) for v in parts[2:]))
+    except ValueError:
+        parser.error(f"--sizes: expected states:samples[:step]; got {text!r}")
+    return size
+
+
 def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--sizes", default="10:4000,20:4000,40:12000",
-                        help="states:samples pairs, comma-separated")  # fmt: skip
+                        help="states:samples or states:samples:step, comma-separated")  # fmt: skip
     parser.add_argument("--families", default="clean,rows")
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--derivatives", default="exact", choices=("exact", "states"))
@@ -41,7 +55,7 @@ def main(argv=None) -> None:
     parser.add_argument("--memory", action="store_true", help="also the peak memory")
     parser.add_argument("--out", default="validation/results/scaling")
     args = parser.parse_args(argv)
-    sizes = [tuple(int(v) for v in pair.split(":")) for pair in args.sizes.split(",")]
+    sizes = [_size(text, parser) for text in args.sizes.split(",")]
     if not (args.noise >= 0 and args.noise < float("inf")):
         parser.error(f"--noise: expected a finite number >= 0; got {args.noise!r}")
     rows = zoo.run_scaling(sizes, families=args.families.split(","), seed=args.seed,

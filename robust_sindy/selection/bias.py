@@ -215,13 +215,24 @@ def noise_columns(library, z, temporal, theta_scale) -> LibraryNoise | None:
         up, down = base.copy(), base.copy()
         up[:, k] += step
         down[:, k] -= step
-        grad = library.transform(up)
-        del up
-        grad -= library.transform(down)
-        p = grad.shape[1]
-        on = np.flatnonzero(np.any(grad != 0, axis=0))
+        # Only the columns that can depend on the state, where the library tells them.
+        cols = getattr(library, "input_columns", lambda _k: None)(k)
+        if cols is None:
+            grad = library.transform(up)
+            del up
+            grad -= library.transform(down)
+            p = grad.shape[1]
+            cols = np.arange(p)
+        else:
+            p = library.n_output_features_
+            cols = np.asarray(cols, dtype=int)
+            grad = library.transform_columns(up, cols)
+            del up
+            grad -= library.transform_columns(down, cols)
+        nonzero = np.flatnonzero(np.any(grad != 0, axis=0))
+        on = cols[nonzero]
         scale = np.broadcast_to(np.asarray(theta_scale, dtype=float), (p,))[on]
-        return p, on, grad[:, on] * (sigma / (2 * step)) / scale
+        return p, on, grad[:, nonzero] * (sigma / (2 * step)) / scale
 
     parts = map_threads(state, range(n))
     p = parts[0][0] if parts else 0
