@@ -27,6 +27,7 @@ import numpy as np
 import scipy.integrate
 
 __all__ = [
+    "LORENZ96_STEP",
     "ZooSystem",
     "lorenz96",
     "lorenz96_records",
@@ -198,6 +199,11 @@ def _fitted(name: str, system, ic: np.ndarray, x: np.ndarray, max_degree: int):
     return None
 
 
+#: The sampling step of the zoo's Lorenz-96 records: about 100 samples over the
+#: decorrelation time of its chaos (F = 8).
+LORENZ96_STEP = 0.01
+
+
 def lorenz96(n_states: int, forcing: float = 8.0) -> ZooSystem:
     """Lorenz-96 with ``n_states`` states, ``x_i' = (x_i+1 - x_i-2) x_i-1 - x_i + F``
     (indices cyclic), on the quadratic monomials: the zoo's system with many channels."""
@@ -211,8 +217,7 @@ def lorenz96(n_states: int, forcing: float = 8.0) -> ZooSystem:
         coef[where[(i,)], i] = -1.0
         coef[where[()], i] = forcing
     ic = forcing + np.sin(np.arange(n))
-    # About 100 samples over the decorrelation time of its chaos (F = 8).
-    return ZooSystem(f"Lorenz96_{n}", n, 2, powers, coef, ic, 0.01)
+    return ZooSystem(f"Lorenz96_{n}", n, 2, powers, coef, ic, LORENZ96_STEP)
 
 
 def _l96(_t, v, forcing):

@@ -31,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .flows import (
+    LORENZ96_STEP,
     ZooSystem,
     lorenz96,
     lorenz96_records,
@@ -467,7 +468,7 @@ class ScalingRow:
     samples: int
     family: str
     method: str
-    step: float = 0.01  # sampling step of the record
+    step: float = LORENZ96_STEP  # sampling step of the record
     seconds: float = np.nan
     ratio: float = np.nan  # seconds / PySINDy STLSQ's seconds on the same record
     peak_mb: float = np.nan
@@ -541,7 +542,7 @@ def run_scaling(
     bar = tqdm(total=len(sizes) * len(families) * len(methods), desc="scaling",
                disable=not progress)  # fmt: skip
     for n, m, *rest in sizes:
-        step = float(rest[0]) if rest else 0.01
+        step = float(rest[0]) if rest else LORENZ96_STEP
         times = step * np.arange(m) if rest else None
         t, x, x_dot, system = lorenz96_records(n, m, seed, times=times)
         if noise > 0:
@@ -604,7 +605,7 @@ def scaling_table(rows: list[ScalingRow]) -> str:
         ratio = f"{h.ratio:.1f}" if h is not None and np.isfinite(h.ratio) else "n/a"
         mem = f"{h.peak_mb / h.theta_mb:.1f}" if h is not None and np.isfinite(h.peak_mb) else "n/a"
         terms = (h or s).terms
-        samples = f"{m}" if step == 0.01 else f"{m} (step {step:g})"
+        samples = f"{m}" if step == LORENZ96_STEP else f"{m} (step {step:g})"
         out.append(
             f"| {n} ({terms}) | {samples} | {family} | {cell(h)} | {cell(s)} | {ratio} | {mem} |"
         )

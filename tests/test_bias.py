@@ -415,9 +415,10 @@ def test_library_noise_formed_on_the_columns_of_each_state_is_the_whole_librarys
     from types import SimpleNamespace
 
     from robust_sindy import CustomLibrary, FourierLibrary
+    from robust_sindy.library import BaseLibrary
     from robust_sindy.selection.bias import noise_columns
 
-    class Opaque:  # the same library, without input_columns
+    class Opaque(BaseLibrary):  # the same library, which cannot tell its columns
         def __init__(self, library):
             self.library = library
 

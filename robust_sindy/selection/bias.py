@@ -216,7 +216,7 @@ def noise_columns(library, z, temporal, theta_scale) -> LibraryNoise | None:
         up[:, k] += step
         down[:, k] -= step
         # Only the columns that can depend on the state, where the library tells them.
-        cols = getattr(library, "input_columns", lambda _k: None)(k)
+        cols = library.input_columns(k)
         if cols is None:
             grad = library.transform(up)
             del up
