@@ -261,12 +261,11 @@ class Diagnostics:
         size up to this one (best-subset candidates, ``Selection.subsets``; 0: not
         searched; smaller than the budget allows where the BIC penalty of larger
         supports alone rules them out).  A larger support was compared with the path's
-        candidates only, and, from size 2 on, the best candidate with a pair of terms
-        added.
+        candidates only.
     from_subsets : ndarray of bool (n,)
-        Equations whose support came from that search or the pair added: no point of
-        the ``lam`` path proposed it (strongly collinear terms), and ``lam_`` and
-        ``result_`` are those of the best path point.
+        Equations whose support came from that search: no point of the ``lam`` path
+        proposed it (strongly collinear terms), and ``lam_`` and ``result_`` are those
+        of the best path point.
     significance : ndarray (n, p)
         Robust t statistic of every selected term (the coefficient over its sandwich
         standard error, :func:`robust_sindy.selection.significance.robust_t`); NaN off

@@ -206,9 +206,7 @@ def test_strong_form_models_wrong_without_a_warning_are_challenged():
     # 0.8 and 1.2 % noise, where outliers keep the strong form and its model is wrong
     # without any warning.  The weak form's model is challenged all the same: taken
     # where it forecasts better (right), else the record's lean towards it warns.
-    # Asked only where the strong form's model warned, all four were silent.  (Since
-    # the selection adds a pair of terms to its best candidate, the strong form gets
-    # HyperRossler with spikes right itself; the weak form then selects the same terms.)
+    # Asked only where the strong form's model warned, all four were silent.
     from robust_sindy import frontier, zoo
     from robust_sindy.flows import polynomial_system, simulate_system
 
@@ -225,9 +223,8 @@ def test_strong_form_models_wrong_without_a_warning_are_challenged():
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
             model.fit(noisy, t)
+        assert model.diagnostics_.formulation_contest["equations"]  # challenged, differing
         exact = np.array_equal(model.coef_.T != 0, frontier._truth(system, x.shape[1]) != 0)
-        if not exact:  # challenged, by a weak form's model that differs
-            assert model.diagnostics_.formulation_contest["equations"]
         assert exact or caught, f"{name} {family} {level}: wrong without a warning"
         right += exact
     assert right >= 1

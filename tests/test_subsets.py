@@ -10,7 +10,7 @@ import pytest
 
 from robust_sindy.library import PolynomialLibrary
 from robust_sindy.selection import select
-from robust_sindy.selection.subsets import best_pair_addition, best_subsets, subset_sizes
+from robust_sindy.selection.subsets import best_subsets, subset_sizes
 
 
 def _brute_force(theta, y, w, size):
@@ -59,69 +59,6 @@ def test_a_shared_gram_matrix_and_the_single_terms_give_the_brute_force_best(see
         found = [set(np.flatnonzero(mk).tolist()) for mk in masks if mk.sum() == size]
         truth = _brute_force(theta[:, pool], y, w, size)
         assert found == [{int(pool[j]) for j in s} for _, s in truth[: len(found)]]
-
-
-def _rss(theta, y, w, cols):
-    sw = np.sqrt(w)
-    a = theta[:, sorted(cols)] * sw[:, None]
-    b, *_ = np.linalg.lstsq(a, y * sw, rcond=None)
-    return float(np.sum((y * sw - a @ b) ** 2))
-
-
-@pytest.mark.parametrize("seed", range(6))
-def test_the_best_pair_addition_is_the_brute_force_best_pair(seed):
-    # Correlated columns, Huber-like weights, a support of two or three terms: the pair
-    # found is the one whose addition leaves the least weighted residual sum of squares
-    # among every pair of the other terms, with and without the shared Gram matrix.
-    rng = np.random.default_rng(seed)
-    p = 9
-    theta = rng.normal(size=(120, p)) @ (np.eye(p) + 0.7 * rng.normal(size=(p, p)))
-    y = theta @ (rng.normal(size=p) * (rng.random(p) < 0.6)) + rng.normal(size=120)
-    w = np.minimum(1.0, 0.8 / np.abs(rng.standard_t(3, size=120)))
-    support = np.zeros(p, dtype=bool)
-    support[rng.choice(p, 2 + seed % 2, replace=False)] = True
-    on = set(np.flatnonzero(support).tolist())
-    others = [j for j in range(p) if j not in on]
-    brute = min(
-        (_rss(theta, y, w, on | {j, k}), {j, k}) for j, k in itertools.combinations(others, 2)
-    )
-    for gram in (None, theta.T @ theta):
-        mask = best_pair_addition(theta, y, w, support, gram=gram)
-        assert mask is not None and np.all(mask[support]) and mask.sum() == support.sum() + 2
-        assert set(np.flatnonzero(mask & ~support).tolist()) == brute[1]
-        assert _rss(theta, y, w, set(np.flatnonzero(mask).tolist())) <= brute[0] * (1 + 1e-9)
-
-
-def test_a_coupling_pair_is_found_where_each_term_alone_explains_little():
-    # y = x0 + 0.5 (x2 - x1) with x1 and x2 nearly equal (two units of a network moving
-    # together): added alone, each of them explains less than an unrelated column does,
-    # together they explain the coupling.
-    rng = np.random.default_rng(3)
-    m = 400
-    x0, x1, decoy = rng.normal(size=(3, m))
-    x2 = x1 + 0.1 * rng.normal(size=m)
-    theta = np.column_stack([x0, x1, x2, decoy, rng.normal(size=(m, 4))])
-    noise = 0.02 * rng.normal(size=m)
-    y = x0 + 0.5 * (x2 - x1) + 0.04 * decoy + noise
-    w = np.ones(m)
-    support = np.eye(theta.shape[1], dtype=bool)[0]
-    single = {j: _rss(theta, y, w, {0, j}) for j in range(1, theta.shape[1])}
-    assert min(single, key=single.get) == 3  # the decoy explains most, added alone
-    mask = best_pair_addition(theta, y, w, support)
-    assert set(np.flatnonzero(mask).tolist()) == {0, 1, 2}
-
-
-def test_a_pair_is_only_searched_among_columns_free_of_the_support():
-    rng = np.random.default_rng(1)
-    theta = rng.normal(size=(50, 4))
-    theta[:, 3] = theta[:, 0] - 2.0 * theta[:, 1]  # inside the support's span
-    theta = np.column_stack([theta, np.zeros(50)])  # an aliased (zeroed) term
-    y = rng.normal(size=50)
-    support = np.array([True, True, False, False, False])
-    assert best_pair_addition(theta, y, np.ones(50), support) is None  # only column 2 free
-    theta[:, 3] += 0.5 * rng.normal(size=50)  # now free of it
-    mask = best_pair_addition(theta, y, np.ones(50), support)
-    assert mask.tolist() == [True, True, True, True, False]
 
 
 def test_the_budget_bounds_the_sizes_and_zero_columns_are_left_out():

@@ -22,7 +22,7 @@ from ..fitting import (
 )
 from .lam_path import Path, path, pilot_budget
 from .refit import STAGE_ROUNDS, refit_column, select_column
-from .subsets import best_pair_addition, best_subsets, subset_sizes
+from .subsets import best_subsets, subset_sizes
 
 __all__ = [
     "CRITERIA",
@@ -136,10 +136,7 @@ class Selection:
         prefer the chosen model.
     subsets : ndarray, shape (E, p, n)
         For ``criterion="bic"``, the selection stage's refit of the best few supports
-        of every size up to ``subset_size`` (:func:`best_subsets`), then, where that
-        size is at least 2, of the best candidate before them with a pair of terms
-        added (:func:`~robust_sindy.selection.subsets.best_pair_addition`; zero where
-        the pair adds nothing); empty otherwise.
+        of every size up to ``subset_size`` (:func:`best_subsets`); empty otherwise.
     subset_scores : ndarray, shape (E, n)
         Their criterion.
     subset_size : ndarray of int, shape (n,)
@@ -509,42 +506,7 @@ def _longest_settled(theta, y, candidates, used, delta, tau, segments) -> np.nda
     return out
 
 
-def _shared_gram(stage: _Stage):
-    """The Gram matrix of the library's nonzero columns where the exhaustive search
-    ranks pairs of terms (:func:`~.subsets.subset_sizes` of at least 2), else None: the
-    searches of pairs of every equation form their weighted ones from it."""
-    every = stage.theta[:, stage.every]
-    return every.T @ every if subset_sizes(every.shape[1]) > 1 else None
-
-
-def _pair_candidates(stage: _Stage, base, tau, gram):
-    """Per equation, the candidate ``base`` (p, n) with the pair of terms added that
-    explains most under its Huber weights (:func:`~.subsets.best_pair_addition`),
-    refitted, put through the selection ``stage`` and scored by the BIC with
-    correlation times ``tau``; (1, p, n) and (1, n), zero and ``nan`` where the pair
-    adds nothing (none free, or the stage drops both terms)."""
-    theta, y, delta = stage.theta, stage.y, stage.delta
-    n = y.shape[1]
-    cands = np.zeros((1, theta.shape[1], n))
-    scores = np.full((1, n), np.nan)
-
-    def equation(k):  # writes only equation k's entries: the equations run side by side
-        r = np.abs(y[:, k] - theta @ base[:, k])
-        weights = np.minimum(1.0, delta[k] / np.maximum(r, np.finfo(float).tiny))
-        mask = best_pair_addition(theta, y[:, k], weights, base[:, k] != 0, gram=gram)
-        if mask is None:
-            return
-        c = stage._column(k, stage.refit(k, mask))
-        if np.array_equal(c != 0, base[:, k] != 0):
-            return
-        cands[0, :, k] = c
-        scores[0, k] = information_criterion(theta, y[:, k], c, delta[k], tau=tau[k])
-
-    stage.side_by_side(equation, range(n))
-    return cands, scores
-
-
-def _subset_candidates(stage: _Stage, reference, tau, best, gram=None):
+def _subset_candidates(stage: _Stage, reference, tau, best):
     """Best-subset candidates of every equation (see ``Selection.subsets``): supports
     ranked under the Huber weights of ``reference`` (p, n), each refitted and put
     through the selection ``stage`` (its refits shared with the path's), then scored
@@ -555,14 +517,18 @@ def _subset_candidates(stage: _Stage, reference, tau, best, gram=None):
     least the dual objective of any feasible point (:func:`_loss_floor`, for both),
     so its score at least the larger of the two loss terms plus its own size's
     penalty.  Sizes the first bound rules out are not searched at all (``subset_size``
-    is then smaller than the budget allows).  ``gram``: :func:`_shared_gram`.
+    is then smaller than the budget allows).
     """
     theta, y, delta = stage.theta, stage.y, stage.delta
     m, p = theta.shape
     n = y.shape[1]
     # The criterion's own terms: the bounds below are on its scores.
     sigma, penalty = bic_terms(m, delta, tau)
+    every = stage.every
+    whole_library = theta[:, every]
     stage.floor_basis()  # shared by every equation's floor
+    # Shared by every equation's search of pairs and beyond (single terms need less).
+    gram = whole_library.T @ whole_library if subset_sizes(whole_library.shape[1]) > 1 else None
     found, sizes = [[] for _ in range(n)], np.zeros(n, dtype=int)
 
     def equation(k):  # writes only equation k's entries: the equations run side by side
@@ -788,12 +754,6 @@ def select(
        same stage and criterion: a lasso path may never propose the true support of
        strongly collinear terms, and a margin among its own candidates does not show
        it.
-       Where that budget reaches pairs, so does the best candidate so far with the
-       pair of terms added that explains most under its Huber weights
-       (:func:`robust_sindy.selection.subsets.best_pair_addition`): two correlated
-       terms whose difference is in the model (a coupling between units of a network
-       that move nearly together) each explain little alone, and the path admits
-       neither.
 
     The lowest score wins; ties go to the larger ``lam``, then to the path.
 
@@ -906,18 +866,9 @@ def select(
         # Supports the path's order of entry cannot reach (strongly collinear terms).
         with warnings.catch_warnings():
             warnings.simplefilter("ignore", ConvergenceWarning)
-            gram = _shared_gram(stage)
             subset_coef, subset_scores, subset_size = _subset_candidates(
-                stage, densest, tau, np.nanmin(scores, axis=0), gram
+                stage, densest, tau, np.nanmin(scores, axis=0)
             )
-            if gram is not None:
-                # The best candidate so far with a pair of terms added (pairs the
-                # exhaustive search ranks within its budget, but only on their own).
-                so_far = np.concatenate([scores, subset_scores])
-                base = np.concatenate([candidates, subset_coef])[_pick(so_far), :, cols].T
-                pair_coef, pair_scores = _pair_candidates(stage, base, tau, gram)
-                subset_coef = np.concatenate([subset_coef, pair_coef])
-                subset_scores = np.concatenate([subset_scores, pair_scores])
     pooled = np.concatenate([candidates, subset_coef])
     pooled_scores = np.concatenate([scores, subset_scores])
     chosen = _pick(pooled_scores)

@@ -8,9 +8,7 @@ up to some size does not depend on that order.  It ranks the supports by the wei
 residual sum of squares of the Huber weights of a reference fit (the iteratively
 reweighted least-squares view of the Huber loss), solved from the weighted Gram matrix,
 so that a subset costs a ``k x k`` solve; the best few of every size are then refitted
-with the Huber loss and scored like the path's candidates.  Beyond the sizes it
-reaches, :func:`best_pair_addition` searches every pair of terms added to a chosen
-support.
+with the Huber loss and scored like the path's candidates.
 """
 
 from __future__ import annotations
@@ -22,7 +20,7 @@ import numpy as np
 
 from ..solvers.newton import inlier_gram
 
-__all__ = ["SUBSET_BUDGET", "best_pair_addition", "best_subsets", "subset_sizes"]
+__all__ = ["SUBSET_BUDGET", "best_subsets", "subset_sizes"]
 
 #: Supports the exhaustive search may rank per equation (all sizes together).
 SUBSET_BUDGET = 200_000
@@ -119,63 +117,3 @@ def best_subsets(
             mask[pool[best_sets[j]]] = True
             masks.append(mask)
     return masks, largest
-
-
-def best_pair_addition(theta, y, weights, support, *, gram=None):
-    """The pair of terms outside ``support`` (bool, p) whose joint addition most
-    reduces the weighted residual sum of squares ``sum_i w_i (y_i - theta_i b)^2`` of
-    the least-squares fit on ``support``, as a mask of ``support`` and the pair; None
-    when fewer than two nonzero columns outside it are free of it.
-
-    Two strongly correlated terms whose difference is in the model (a coupling
-    ``c (x_j - x_i)`` between the units of a network, when the units move nearly
-    together) each explain little alone: a path that admits terms one at a time and a
-    test of single added terms pass them by, and an exhaustive search reaches supports
-    of the chosen one's size plus two only in the smallest libraries.  The pair
-    together explains what neither does.  With ``P`` the columns ``W``-orthogonalised
-    against the support, ``e`` the weighted least-squares residual, ``s = P^T W e`` and
-    ``H = P^T W P``, adding ``J = {j, l}`` reduces the sum by ``s_J^T H_JJ^-1 s_J``:
-    one ``p x p`` matrix, every pair from its ``2 x 2`` blocks (the ridge of
-    :func:`best_subsets` on their diagonals).  Columns (nearly) inside the support's
-    span on the weighted rows take no part.  ``gram`` as in :func:`best_subsets`.
-    """
-    theta = np.asarray(theta, dtype=float)
-    w = np.asarray(weights, dtype=float)
-    support = np.asarray(support, dtype=bool)
-    pool = np.flatnonzero(np.any(theta != 0, axis=0))
-    a = theta[:, pool]
-    if gram is not None and w.min(initial=1.0) >= 0.0 and w.max(initial=0.0) <= 1.0:
-        g_w = inlier_gram(a, np.asarray(gram, dtype=float), w[:, None])[0]
-    else:
-        g_w = a.T @ (w[:, None] * a)
-    rhs = a.T @ (w * y)
-    on = support[pool]
-    diag = np.diag(g_w).copy()
-    h, s = g_w, rhs
-    if on.any():
-        sel = np.flatnonzero(on)
-        g_ss = g_w[np.ix_(sel, sel)] + np.diag(_RIDGE * diag[sel])
-        coupling = np.linalg.solve(g_ss, g_w[sel])  # (|S|, p): the support's share
-        h = g_w - g_w[:, sel] @ coupling
-        s = rhs - coupling.T @ rhs[sel]
-    free = np.diag(h).copy()
-    out = np.flatnonzero(~on & (free > 1e-10 * diag))
-    if out.size < 2:
-        return None
-    h_out = h[np.ix_(out, out)]
-    h_out[np.diag_indices(out.size)] += _RIDGE * diag[out]
-    d, s_out = np.diag(h_out), s[out]
-    det = np.outer(d, d) - h_out**2
-    gain = (
-        (s_out**2)[:, None] * d[None, :] - 2.0 * np.outer(s_out, s_out) * h_out
-        + d[:, None] * (s_out**2)[None, :]
-    )  # fmt: skip
-    valid = np.triu(det > 0, 1)
-    gain = np.where(valid, gain / np.where(valid, det, 1.0), -np.inf)
-    best = int(np.argmax(gain))
-    if not np.isfinite(gain.flat[best]):
-        return None
-    pair = np.unravel_index(best, gain.shape)
-    mask = support.copy()
-    mask[pool[out[list(pair)]]] = True
-    return mask
