@@ -166,3 +166,30 @@ def test_reference_is_not_converged_where_its_certificate_fails():
     assert ref.converged == bool(ref.kkt.max() <= 1e-5)
     if not ref.converged:
         assert ref.certificate_kkt.max() > 1e-5
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_products_of_the_rounding_bounds_read_only_a_models_terms(seed):
+    # |Theta| |xi| (the scale of the rounding bounds) from the columns where xi has a
+    # nonzero row: the same values as from the whole library, for an array and for the
+    # solvers' equilibrated operator, on all rows or some, with columns of xi that are
+    # zero, sparse or dense.
+    from robust_sindy.core.certificates import _abs_product
+    from robust_sindy.solvers.problem import prepare
+
+    rng = np.random.default_rng(seed)
+    m, p = 300, 40
+    theta = rng.normal(size=(m, p)) * rng.uniform(0.1, 10.0, p)
+    dense_xi = np.abs(rng.normal(size=(p, 3)))
+    sparse_xi = np.where(rng.random((p, 1)) < 0.8, 0.0, dense_xi)
+    sparse_xi[:, 0] = 0.0
+    A = prepare(theta, equilibrate=True, kappa=1.0).A
+    rows = np.sort(rng.choice(m, 50, replace=False))
+    for lib, dense in [(theta, theta), (A, theta / A.scale)]:
+        for r in (None, rows):
+            for axi in (sparse_xi, dense_xi):
+                want = np.abs(dense if r is None else dense[r]) @ axi
+                got = _abs_product(lib, axi, r)
+                assert np.allclose(got, want, rtol=1e-13, atol=0.0)
+            assert np.all(_abs_product(lib, sparse_xi, r)[:, 0] == 0.0)
+    assert np.all(_abs_product(theta, np.zeros((p, 2))) == 0.0)

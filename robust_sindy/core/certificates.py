@@ -128,12 +128,29 @@ _ROW_CHUNK = 4096  # rows of |Theta| formed at a time
 
 
 def _abs_product(theta: np.ndarray, axi: np.ndarray, rows=None) -> np.ndarray:
-    """``|Theta[rows]| @ axi`` in row chunks, never forming ``|Theta|`` whole."""
+    """``|Theta[rows]| @ axi`` for ``axi >= 0`` in row chunks, never forming ``|Theta|``
+    whole, and reading only the columns of ``Theta`` where some entry of ``axi`` is not
+    zero (a sparse model's terms: the others add nothing)."""
     idx = np.arange(theta.shape[0]) if rows is None else rows
-    out = np.empty((idx.size, axi.shape[1]))
+    terms = np.flatnonzero(np.any(axi != 0, axis=1))
+    out = np.zeros((idx.size, axi.shape[1]))
+    if terms.size == 0:
+        return out
+    axi = axi[terms]
     for lo in range(0, idx.size, _ROW_CHUNK):
-        out[lo : lo + _ROW_CHUNK] = np.abs(theta[idx[lo : lo + _ROW_CHUNK]]) @ axi
+        block = _gather(theta, idx[lo : lo + _ROW_CHUNK], terms)
+        out[lo : lo + _ROW_CHUNK] = np.abs(block) @ axi
     return out
+
+
+def _gather(theta, rows: np.ndarray, terms: np.ndarray) -> np.ndarray:
+    """``theta[rows][:, terms]`` for an array or an operator with a ``block`` method
+    (the solvers' equilibrated library), without forming the rows' other entries."""
+    if terms.size == theta.shape[1]:
+        return theta[rows]
+    if isinstance(theta, np.ndarray):
+        return theta[np.ix_(rows, terms)]
+    return theta.block(rows, terms)
 
 
 def rounding_free(r: np.ndarray, y: np.ndarray, theta: np.ndarray, xi: np.ndarray) -> np.ndarray:

@@ -200,7 +200,7 @@ def _block(A, rows: np.ndarray, J: np.ndarray) -> np.ndarray:
     without forming the rows' other entries."""
     if isinstance(A, np.ndarray):
         return A[np.ix_(rows, J)]
-    return A.theta[np.ix_(rows, J)] / A.scale[J]
+    return A.block(rows, J)
 
 
 def working_sets(S: np.ndarray, x: np.ndarray):

@@ -111,6 +111,11 @@ class ScaledColumns:
     def __getitem__(self, rows):
         return self.theta[rows] / self.scale
 
+    def block(self, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+        """``A[rows][:, cols]`` (integer arrays), without forming the rows' other
+        entries."""
+        return self.theta[np.ix_(rows, cols)] / self.scale[cols]
+
     def gram(self) -> np.ndarray:
         """``A^T A``, from row chunks of ``A``."""
         G = np.zeros((self.shape[1], self.shape[1]))
