@@ -443,7 +443,8 @@ def _advice(method, solver_name, out, bad, opts, tol, delta_k, y, loss) -> str:
             )
     elif method == "cvxpy":
         other = "osqp" if solver_name == "clarabel" else "clarabel"
-        advice = f"try solver={other!r} or method='admm'"
+        statuses = ", ".join(dict.fromkeys(out.messages[k] for k in bad))
+        advice = f"solver={other!r} or method='admm' (the solver's status: {statuses})"
     elif method == "stls" and not out.converged[bad].all():
         advice = "increase max_sweeps"
     else:

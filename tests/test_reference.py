@@ -1,3 +1,5 @@
+import warnings
+
 import numpy as np
 import pytest
 
@@ -31,3 +33,26 @@ def test_unknown_solver_is_rejected():
     theta, y = random_problem(22)
     with pytest.raises(ValueError, match="solver"):
         rs.fit(theta, y, method="cvxpy", solver="gurobi-ish")
+
+
+def test_cvxpys_inaccuracy_warning_gives_way_to_the_certificate():
+    # CVXPY warns that a solution "may be inaccurate" whenever the solver's status is
+    # inaccurate, also where the certificate accepts the point: the reference keeps
+    # the status in its messages and lets the certificate decide, which warns
+    # (ConvergenceWarning, with the status) exactly where it rejects the point.
+    # Clarabel is stopped early to get such statuses.
+    rng = np.random.default_rng(0)
+    theta = rng.normal(size=(200, 8))
+    y = theta @ rng.normal(size=8) + 0.1 * rng.normal(size=200)
+    statuses = []
+    for max_iter in range(2, 9):
+        with warnings.catch_warnings(record=True) as caught:
+            warnings.simplefilter("always")
+            out = rs.fit(theta, y, method="cvxpy", delta=1.0, lam=1.0, max_iter=max_iter)
+        statuses += out.messages
+        assert not [w for w in caught if "may be inaccurate" in str(w.message)]
+        flagged = [w for w in caught if issubclass(w.category, rs.ConvergenceWarning)]
+        assert bool(flagged) == (not out.converged)
+        if flagged:  # the solver's status, in the one warning there is
+            assert out.messages[0] in str(flagged[0].message)
+    assert any("inaccurate" in m or "limit" in m for m in statuses)

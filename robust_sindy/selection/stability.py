@@ -22,6 +22,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from ..solvers.reference import solve_problem
+
 __all__ = ["Boundedness", "boundedness", "quadratic_parts"]
 
 #: Relative size of the cubic coefficients of the energy rate below which the quadratic
@@ -111,7 +113,7 @@ def boundedness(c, lin, q) -> Boundedness:
     a = lin + jac
     problem = cp.Problem(cp.Minimize(cp.lambda_max((a + a.T) / 2)))
     try:
-        problem.solve(solver="CLARABEL")
+        solve_problem(problem, "CLARABEL", False, {})
     except (cp.error.SolverError, cp.error.DCPError):
         return Boundedness(residual, True, float("nan"), None)
     if problem.status == cp.UNBOUNDED:

@@ -122,7 +122,7 @@ def solve_constrained_cvxpy(
     user's units a problem scaled by 1e12 reads as infeasible)."""
     import cvxpy as cp
 
-    from .reference import SETTINGS
+    from .reference import SETTINGS, solve_problem
 
     name = solver.upper()
     if name not in cp.installed_solvers():
@@ -150,7 +150,7 @@ def solve_constrained_cvxpy(
     problem = cp.Problem(cp.Minimize(loss + lam_s @ cp.abs(vec)), cons)
     settings = {**SETTINGS[solver], **solver_options}
     try:
-        problem.solve(solver=name, verbose=verbose, **settings)
+        solve_problem(problem, name, verbose, settings)
     except cp.error.SolverError as exc:
         return ConstrainedOutput(np.zeros((p, n)), 0, f"{solver} failed: {exc}")
     if u.value is None:

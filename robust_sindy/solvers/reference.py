@@ -13,13 +13,14 @@ Each column is its own problem, solved by Clarabel (interior point, default) or 
 
 from __future__ import annotations
 
+import warnings
 from numbers import Real
 
 import numpy as np
 
 from .problem import SolverOutput
 
-__all__ = ["SETTINGS", "SOLVERS", "solve_cvxpy"]
+__all__ = ["SETTINGS", "SOLVERS", "solve_cvxpy", "solve_problem"]
 
 SOLVERS = ("clarabel", "osqp")
 
@@ -74,6 +75,19 @@ def check_options(solver: str, options: dict) -> None:
             )
 
 
+def solve_problem(problem, solver_name: str, verbose: bool, settings: dict) -> None:
+    """``problem.solve`` without CVXPY's generic warning that a solution "may be
+    inaccurate": its status (``optimal_inaccurate``, ...) stays in the caller's
+    messages, and the caller's certificate decides whether the point is accepted (and
+    warns, with the status, where it is not): CVXPY's warning would otherwise also
+    fire on answers the certificate accepts."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings(
+            "ignore", message="Solution may be inaccurate", category=UserWarning
+        )
+        problem.solve(solver=solver_name, verbose=verbose, **settings)
+
+
 def solve_cvxpy(
     theta: np.ndarray,
     y: np.ndarray,
@@ -123,7 +137,7 @@ def solve_cvxpy(
             loss = 0.5 * cp.sum(cp.huber(resid, float(delta[k])))
         problem = cp.Problem(cp.Minimize(loss + lam[:, k] @ cp.abs(xi)))
         try:
-            problem.solve(solver=name, verbose=verbose, **settings)
+            solve_problem(problem, name, verbose, settings)
         except cp.error.SolverError as exc:
             messages.append(f"{solver} failed: {exc}")
             continue
