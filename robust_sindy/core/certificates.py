@@ -137,20 +137,21 @@ def _abs_product(theta: np.ndarray, axi: np.ndarray, rows=None) -> np.ndarray:
     if terms.size == 0:
         return out
     axi = axi[terms]
+    every = terms.size == theta.shape[1]  # then whole rows, as they are stored
     for lo in range(0, idx.size, _ROW_CHUNK):
-        block = _gather(theta, idx[lo : lo + _ROW_CHUNK], terms)
+        at = idx[lo : lo + _ROW_CHUNK]
+        block = theta[at] if every else gather(theta, at, terms)
         out[lo : lo + _ROW_CHUNK] = np.abs(block) @ axi
     return out
 
 
-def _gather(theta, rows: np.ndarray, terms: np.ndarray) -> np.ndarray:
-    """``theta[rows][:, terms]`` for an array or an operator with a ``block`` method
-    (the solvers' equilibrated library), without forming the rows' other entries."""
-    if terms.size == theta.shape[1]:
-        return theta[rows]
+def gather(theta, rows: np.ndarray, cols: np.ndarray) -> np.ndarray:
+    """``theta[rows][:, cols]`` (integer arrays) for an array or an operator with a
+    ``block`` method (the solvers' equilibrated library), without forming the rows'
+    other entries."""
     if isinstance(theta, np.ndarray):
-        return theta[np.ix_(rows, terms)]
-    return theta.block(rows, terms)
+        return theta[np.ix_(rows, cols)]
+    return theta.block(rows, cols)
 
 
 def rounding_free(r: np.ndarray, y: np.ndarray, theta: np.ndarray, xi: np.ndarray) -> np.ndarray:

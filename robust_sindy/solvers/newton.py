@@ -69,6 +69,7 @@ import scipy.linalg
 
 from ..core.certificates import (
     column_norms,
+    gather,
     kkt_from_gradient,
     rounding_floor,
     rounding_free,
@@ -195,14 +196,6 @@ def line_search(r, q, x, d, lam, delta, upper: float | None = None) -> float:
 # one batched Newton step
 
 
-def _block(A, rows: np.ndarray, J: np.ndarray) -> np.ndarray:
-    """``A[rows][:, J]`` (``A`` an array or a :class:`~.problem.ScaledColumns`), gathered
-    without forming the rows' other entries."""
-    if isinstance(A, np.ndarray):
-        return A[np.ix_(rows, J)]
-    return A.block(rows, J)
-
-
 def working_sets(S: np.ndarray, x: np.ndarray):
     """Per column, the terms whose inlier Gram entries a Newton step reads: the support
     ``S`` (its block is solved) then the other nonzero coefficients (their columns of
@@ -257,13 +250,13 @@ def _weighted_gram(A, G, w, R, tail: int) -> np.ndarray:
     N = R[first:]
     down = np.flatnonzero(w < 1.0)
     if 2 * down.size <= A.shape[0]:
-        AR = _block(A, down, R)
+        AR = gather(A, down, R)
         B = G[np.ix_(R, N)] - (AR * (1.0 - w[down, None])).T @ AR[:, first:]
         ratio = np.diag(B[first:]) / np.maximum(np.diag(G)[N], np.finfo(float).tiny)
         if np.min(ratio, initial=1.0) > 1.0 - DIRECT_GRAM:
             return B
     keep = np.flatnonzero(w > 0.0)
-    AR = _block(A, keep, R)
+    AR = gather(A, keep, R)
     return (AR * w[keep, None]).T @ AR[:, first:]
 
 
@@ -318,7 +311,7 @@ class GramCache:
                 where = np.full(p, -1)
                 where[J0] = np.arange(J0.size)
             at = where[J]
-            rows = _block(A, changed, J0)
+            rows = gather(A, changed, J0)
             sign = np.where(inlier[changed, c], 1.0, -1.0)
             M1 = M0 + (rows * sign[:, None]).T @ rows
             d1 = drift + np.einsum("ij,ij->j", rows, rows)
