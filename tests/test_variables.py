@@ -10,6 +10,7 @@ from robust_sindy.selection.bias import LibraryNoise
 from robust_sindy.selection.variables import (
     RowNoise,
     _added_chi2,
+    _added_pairs,
     gls_score,
     rescore_supports,
 )
@@ -431,17 +432,26 @@ def _chi2_by_lstsq(gw, yw, support):
     return out
 
 
+def _random_columns(rng, rows, terms, spare, most):
+    """Columns of very different scales (the last one zero) and a random support of
+    fewer than ``most`` of the first ``p - spare`` columns: rows, p, columns, support."""
+    rows, p = int(rng.integers(*rows)), int(rng.integers(*terms))
+    gw = rng.standard_normal((rows, p)) * np.exp(rng.normal(0.0, 2.0, p))
+    gw[:, p - 1] = 0.0
+    support = np.zeros(p, dtype=bool)
+    support[
+        rng.choice(p - spare, int(rng.integers(0, min(p - spare - 1, most))), replace=False)
+    ] = True
+    return rows, p, gw, support
+
+
 def test_the_searchs_ranking_of_added_terms_is_least_squares_on_each_augmented_support():
     """One factorisation of the support ranks every added term as a least-squares fit
     on the support and that term would (columns of very different scales, empty and
     rank-deficient supports, a zero column, a target nearly in the span)."""
     rng = np.random.default_rng(3)
     for trial in range(60):
-        rows, p = int(rng.integers(15, 300)), int(rng.integers(3, 40))
-        gw = rng.standard_normal((rows, p)) * np.exp(rng.normal(0.0, 2.0, p))
-        gw[:, p - 1] = 0.0
-        support = np.zeros(p, dtype=bool)
-        support[rng.choice(p - 1, int(rng.integers(0, min(p - 2, 7))), replace=False)] = True
+        rows, p, gw, support = _random_columns(rng, (15, 300), (3, 40), spare=1, most=7)
         if trial % 4 == 0 and support.sum() >= 2:  # a support holding the same term twice
             first, second = np.flatnonzero(support)[:2]
             gw[:, second] = 3.0 * gw[:, first]
@@ -467,3 +477,109 @@ def test_the_rescoring_is_the_same_on_one_thread_and_on_several(monkeypatch):
         assert np.array_equal(getattr(several, name), getattr(one, name), equal_nan=True), name
     for a, b_ in zip(several.scored, one.scored, strict=True):
         assert all(np.array_equal(u, v) for u, v in zip(a, b_, strict=True))
+
+
+def _pairs_by_lstsq(gw, yw, support):
+    """``{(j, l): chi-square}`` of the least-squares fit on the support and each pair."""
+    out = {}
+    cand = np.flatnonzero(~support & np.any(gw != 0, axis=0))
+    for a in range(cand.size):
+        for b in range(a + 1, cand.size):
+            on = np.flatnonzero(support | np.isin(np.arange(gw.shape[1]), cand[[a, b]]))
+            sol = np.linalg.lstsq(gw[:, on], yw, rcond=None)[0]
+            r = yw - gw[:, on] @ sol
+            out[(int(cand[a]), int(cand[b]))] = float(r @ r)
+    return out
+
+
+def test_the_searchs_ranking_of_added_pairs_is_least_squares_on_each_augmented_support():
+    """One factorisation of the support ranks every pair of added terms as a
+    least-squares fit on the support and the pair would: the best pairs returned are
+    the best by brute force, with their chi-squares (columns of very different scales,
+    empty supports, a zero column); a pair of one column repeated is never returned."""
+    rng = np.random.default_rng(5)
+    for _ in range(40):
+        rows, p, gw, support = _random_columns(rng, (20, 200), (6, 25), spare=3, most=6)
+        free = np.flatnonzero(~support[: p - 1])
+        # a small difference of two large columns: each alone explains little
+        gw[:, free[1]] = (
+            gw[:, free[0]] + 1e-2 * rng.standard_normal(rows) * np.abs(gw[:, free[0]]).max()
+        )
+        yw = gw[:, free[0]] - gw[:, free[1]] + 1e-3 * rng.standard_normal(rows)
+        reference = _pairs_by_lstsq(gw, yw, support)
+        ours, ranked = _added_pairs(gw, yw, support, 3)
+        assert ranked == len(reference)
+        assert [(j, k) for _, j, k in ours][:1] == [min(reference, key=reference.get)]
+        best = sorted(reference.values())[: len(ours)]
+        assert np.allclose([c for c, _, _ in ours], best, rtol=1e-6, atol=1e-9 * float(yw @ yw))
+        for chi2, j, k in ours:
+            assert np.isclose(chi2, reference[(j, k)], rtol=1e-6, atol=1e-9 * float(yw @ yw))
+    gw = rng.standard_normal((50, 4))
+    gw[:, 3] = 2.0 * gw[:, 2]
+    ours, _ = _added_pairs(gw, gw[:, 2] + gw[:, 0], np.zeros(4, dtype=bool), 6)
+    assert (2, 3) not in [(j, k) for _, j, k in ours]
+
+
+def _unit_noise(rows, p):
+    """A noise model whose covariance is the identity: rows of unit, independent noise
+    in the target only, so that the score is the least-squares chi-square."""
+    weights = scipy.sparse.csr_array((rows, rows))
+    slopes = scipy.sparse.csr_array(np.eye(rows))
+    columns = LibraryNoise(p, [np.arange(0)], [np.zeros((rows, 0))])
+    return RowNoise(weights, slopes, columns, np.array([1.0]))
+
+
+def _suppressor(rng, rows=400, p=14, size=40.0):
+    """Columns 0 and 1 nearly equal (a large common part), the target their difference
+    (of chi-square about ``size**2``) plus unit noise: either column alone explains
+    next to nothing of it, the two together all of it."""
+    g = rng.standard_normal((rows, p))
+    common = 1000.0 * rng.standard_normal(rows)
+    apart = size / np.sqrt(rows) * rng.standard_normal(rows)
+    g[:, 0], g[:, 1] = common + apart, common
+    return g, apart + rng.standard_normal(rows)
+
+
+def test_the_search_adds_two_terms_together_where_neither_alone_lowers_the_score(monkeypatch):
+    """Where the target is a small difference of two large, nearly equal columns,
+    single additions rarely lower the score: the search adds the pair, and the
+    rescoring takes a support holding it, on every one of 20 draws (without pair moves
+    on at most half of them)."""
+    from robust_sindy.selection import variables
+
+    found, without = 0, 0
+    for seed in range(20):
+        g, y = _suppressor(np.random.default_rng(seed))
+        noise = _unit_noise(*g.shape)
+        chosen = np.zeros((g.shape[1], 1))
+        chosen[5] = 1.0  # a wrong single term
+        out = rescore_supports(g, y[:, None], chosen, [chosen[None]], noise, margin=6.0)
+        found += bool(out.switched[0] and out.support[:2, 0].all())
+        with monkeypatch.context() as m:
+            m.setattr(variables, "_added_pairs", lambda *a: ([], 0))
+            alone = rescore_supports(g, y[:, None], chosen, [chosen[None]], noise, margin=6.0)
+        without += bool(alone.support[:2, 0].all())
+    assert found == 20
+    assert without <= 10
+
+
+def test_pair_moves_do_not_add_pairs_that_explain_nothing(monkeypatch):
+    """On a target of pure noise, the best of the many pairs lowers the chi-square by
+    about 2 log(pairs) by chance: charged for it, the search ends where it ends without
+    pair moves on at least 29 of 30 draws."""
+    from robust_sindy.selection import variables
+
+    same = 0
+    for seed in range(30):
+        rng = np.random.default_rng(100 + seed)
+        g = rng.standard_normal((300, 30))
+        y = rng.standard_normal(300)
+        noise = _unit_noise(*g.shape)
+        chosen = np.zeros((30, 1))
+        chosen[0] = 1e-3
+        out = rescore_supports(g, y[:, None], chosen, [chosen[None]], noise, margin=6.0)
+        with monkeypatch.context() as m:
+            m.setattr(variables, "_added_pairs", lambda *a: ([], 0))
+            alone = rescore_supports(g, y[:, None], chosen, [chosen[None]], noise, margin=6.0)
+        same += np.array_equal(out.support, alone.support)
+    assert same >= 29

@@ -25,7 +25,9 @@ holds the true model, more where the support misses part of it, whatever the sca
 its coefficients.  :func:`rescore_supports` scores the selection's candidates so, each
 with ``log(rows)`` per term (whitened rows are independent), and reports the
 equations where another candidate (or one a stepwise search under the same score
-reaches from the best of them) scores better than the chosen support by more than
+reaches from the best of them, adding a pair of terms together where no single move
+lowers the score: ``x' = 36 (y - x)`` again, where either term alone explains little
+of it) scores better than the chosen support by more than
 :data:`~robust_sindy.selection.criteria.MIN_BIC_MARGIN`, where the states' noise
 explains that candidate's residuals (:data:`NOISE_EXPLAINS`).
 
@@ -69,6 +71,10 @@ GLS_ROUNDS = 4
 #: The stepwise search scores this many of its best-ranked moves under their own
 #: covariance (the ranking uses the current fit's).
 MOVES_SCORED = 3
+#: The pair moves of the stepwise search rank pairs among at most this many candidate
+#: terms (those whose single addition lowers the chi-square most), a cost bound: every
+#: pair's fall needs the candidates' products with each other (rows x terms^2).
+PAIR_TERMS = 400
 #: A support replaces the chosen one only where the states' noise explains its
 #: residuals: its chi-square is at most this many times the number of rows (about 1
 #: when it does; far more where the residuals hold what the noise model leaves out,
@@ -267,9 +273,48 @@ def _added_chi2(gw, yw, support) -> list[tuple[float, int]]:
     return [(float(v), int(j)) for v, j in zip(chi2, cand, strict=True)]
 
 
+def _added_pairs(
+    gw, yw, support, count: int, among=None
+) -> tuple[list[tuple[float, int, int]], int]:
+    """The ``count`` pairs of columns outside ``support`` whose joint addition lowers the
+    least-squares chi-square of ``yw`` on ``gw[:, support]`` most, as ``(chi-square, j,
+    l)``, and the number of pairs ranked.  With ``c`` the candidates' parts orthogonal to
+    the support's columns, ``r`` the residual, ``s = c^T r`` and ``h = c^T c``, adding
+    ``{j, l}`` removes ``s_J^T h_JJ^{-1} s_J``; pairs whose 2 x 2 block is singular to
+    rounding (a column that repeats another) are not ranked.  ``among`` (indices), if
+    given, limits the candidates to those columns."""
+    cand = np.flatnonzero(~support & np.any(gw != 0, axis=0))
+    if among is not None:
+        cand = np.intersect1d(cand, among)
+    if cand.size < 2:
+        return [], 0
+    r, c = yw, gw[:, cand]
+    base = gw[:, support]
+    if base.shape[1]:
+        u, sv, _ = np.linalg.svd(base, full_matrices=False)
+        cut = np.finfo(float).eps * max(gw.shape[0], base.shape[1] + 1)
+        u = u[:, sv > cut * sv[0]]
+        r = yw - u @ (u.T @ yw)
+        c = c - u @ (u.T @ c)
+    s, h = c.T @ r, c.T @ c
+    d = np.diag(h)
+    a, b = np.triu_indices(cand.size, 1)
+    det = d[a] * d[b] - h[a, b] ** 2
+    ok = det > np.sqrt(np.finfo(float).eps) * d[a] * d[b]
+    fall = np.full(a.size, -np.inf)
+    fall[ok] = (
+        d[b][ok] * s[a][ok] ** 2 - 2 * h[a, b][ok] * s[a][ok] * s[b][ok] + d[a][ok] * s[b][ok] ** 2
+    ) / det[ok]
+    rr = float(r @ r)
+    best = np.argsort(-fall)[:count]
+    return [(rr - fall[i], int(cand[a[i]]), int(cand[b[i]])) for i in best if ok[i]], int(a.size)
+
+
 def _stepwise(g, y, key, score, noise: RowNoise, k: int, penalty: float, memo, steps: int = 40):
     """From the support ``key`` (bytes of a bool array) with score ``score``: add or drop
-    the one term that lowers the score most, until none does (``steps`` at most).
+    the one term that lowers the score most, or, where no single move does, add the
+    pair of terms that does (:func:`_added_pairs`, charged ``2 log`` of the pairs
+    ranked), until nothing does (``steps`` moves at most).
     Every drop is scored under its own covariance (:func:`gls_score`, from the current
     fit): dropping a term the others imitated raises the remaining coefficients, and
     with them the noise they carry, which a ranking under the current covariance does
@@ -304,6 +349,22 @@ def _stepwise(g, y, key, score, noise: RowNoise, k: int, penalty: float, memo, s
             new_score = chi2 + penalty * int(trial.sum())
             if new_score < score and (best is None or new_score < best[2]):
                 best = (trial, new_xi, new_score)
+        if best is None:
+            # No single move lowers the score: a pair of terms added together, where
+            # each alone explains little (a small difference of two large terms, such
+            # as x' = 36 (y - x) with x following y).  The best of N pairs lowers the
+            # chi-square by about 2 log N by chance, so that is charged on top of the
+            # two terms' penalty.
+            among = [j for _, j in sorted(ranked)[:PAIR_TERMS]]
+            pairs, searched = _added_pairs(gw, yw, support, MOVES_SCORED, among)
+            charge = 2.0 * np.log(max(searched, 1))
+            for _, a, b in pairs:
+                trial = support.copy()
+                trial[[a, b]] = True
+                chi2, new_xi = fitted(trial, xi)
+                new_score = chi2 + penalty * int(trial.sum())
+                if new_score + charge < score and (best is None or new_score < best[2]):
+                    best = (trial, new_xi, new_score)
         if best is None:
             break
         support, xi, score = best
