@@ -22,7 +22,8 @@ import numpy as np
 
 from robust_sindy.timeseries import weak
 
-STEP, SAMPLES, HALF_WIDTH_STEPS = 0.01, 2000, 15
+STEP, SAMPLES = 0.01, 2000
+HALF_WIDTH = 15 * STEP  # the test functions' half width, 15 steps
 PERIODS = (20, 40)  # samples a period of the sines
 
 
@@ -30,7 +31,7 @@ def _exact(centre: float, h: float, omega: float) -> float:
     """``int phi'(t) sin(omega t) dt`` over the support, on a fine grid."""
     s = np.linspace(-1.0, 1.0, 20001)
     t = centre + h * s
-    slope = -2.0 * weak.POWER * s * (1.0 - s**2) ** (weak.POWER - 1) / h
+    _, slope = weak._bump(s, h)
     return float(np.trapezoid(slope * np.sin(omega * t), t))
 
 
@@ -39,17 +40,28 @@ def measure(t: np.ndarray, samples: int, degree: int) -> tuple[float, float, lis
     kept = weak.LOCAL_SAMPLES, weak.LOCAL_DEGREE
     weak.LOCAL_SAMPLES, weak.LOCAL_DEGREE = samples, degree
     try:
-        _, dphi, centres = weak.weight_functions(t, HALF_WIDTH_STEPS * STEP)
+        _, dphi, centres = weak.weight_functions(t, HALF_WIDTH)
     finally:
         weak.LOCAL_SAMPLES, weak.LOCAL_DEGREE = kept
     variance = (dphi**2).sum(axis=1)
     errors = []
     for per in PERIODS:
         omega = 2.0 * np.pi / (per * STEP)
-        exact = np.array([_exact(c, HALF_WIDTH_STEPS * STEP, omega) for c in centres[::10]])
+        exact = np.array([_exact(c, HALF_WIDTH, omega) for c in centres[::10]])
         found = dphi[::10] @ np.sin(omega * t)
         errors.append(float(np.sqrt(np.mean((found - exact) ** 2) / np.mean(exact**2))))
     return float(variance.mean()), float(variance.max()), errors
+
+
+def _stencils(text: str, parser) -> list[tuple[int, int]]:
+    """``samples:degree,...`` as pairs of integers."""
+    try:
+        pairs = [tuple(int(v) for v in item.split(":")) for item in text.split(",")]
+        if any(len(pair) != 2 for pair in pairs):
+            raise ValueError
+    except ValueError:
+        parser.error(f"--stencils: expected samples:degree, comma-separated; got {text!r}")
+    return pairs
 
 
 def main(argv=None) -> None:
@@ -58,6 +70,7 @@ def main(argv=None) -> None:
                         help="samples:degree of the local fits, comma-separated")  # fmt: skip
     parser.add_argument("--seed", type=int, default=0)
     args = parser.parse_args(argv)
+    stencils = _stencils(args.stencils, parser)
     span = (SAMPLES - 1) * STEP
     uniform = np.linspace(0.0, span, SAMPLES)
     random = np.sort(np.random.default_rng(args.seed).uniform(0.0, span, SAMPLES))
@@ -66,8 +79,7 @@ def main(argv=None) -> None:
     print(f"| times | stencil | row noise variance, mean (max) | relative error at {head} "
           "samples a period |")  # fmt: skip
     print("|---|---|---|---|")
-    for text in args.stencils.split(","):
-        samples, degree = (int(v) for v in text.split(":"))
+    for samples, degree in stencils:
         for name, t in (("uniform", uniform), ("random", random)):
             mean, top, errors = measure(t, samples, degree)
             shown = " / ".join(f"{e:.2g}" for e in errors)
