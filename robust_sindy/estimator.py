@@ -76,7 +76,12 @@ from .selection.forecast import FORECAST_EVIDENCE, forecast_contest
 from .selection.problem import Problem
 from .selection.rows import RowScreen, screen_samples
 from .selection.stability import boundedness, quadratic_parts
-from .selection.variables import RowNoise, dropped_evidence, rescore_weak
+from .selection.variables import (
+    RowNoise,
+    displacement_refused,
+    dropped_evidence,
+    rescore_weak,
+)
 from .simulate import integrate, simulation_inputs
 from .timeseries.derivatives import (
     DERIVATIVE_WINDOWS,
@@ -587,12 +592,20 @@ class HuberSINDy(BaseEstimator):
             )  # fmt: skip
         stages.start("final selection")
         if choice.selection is not None:
+            refuse = None
+            if row_noise is not None:  # put-back terms judged as the rescoring judged
+
+                def refuse(current, outcome, cols):
+                    return displacement_refused(
+                        floor.design, kept.y_s, current, outcome, row_noise, cols
+                    )
+
             final = final_selection(
                 kept, floor.design, fitted.coef, fitted.result.delta,
                 selection_tol=self.selection_tol, floor_tol=floor.selection_tol,
                 measured=deriv.measured,
                 reference=None if deriv.reference is None else deriv.reference[rows.keep],
-                method=pilot, solver=self.solver, options=options,
+                method=pilot, solver=self.solver, options=options, refuse=refuse,
             )  # fmt: skip
         else:
             nan = np.full(fitted.coef.shape, np.nan)

@@ -6,17 +6,19 @@ The mean-field model of a wake's oscillating modes and shift mode (Noack et al. 
     x2' = -g x2 + a (x0^2 + x1^2),
 
 has a limit cycle of radius sqrt(mu g) / a at the shift level mu / a, and its quadratic
-part conserves energy.  For three parameter sets other than the tests' one, a record of
-3000 samples over ``--span`` growth times (``span / mu``) from (0.01, 0, 0) is fitted
-from the states alone by ``HuberSINDy()`` and ``HuberSINDy(constraints=
-"energy_preserving")``, in the wake's cases (:mod:`cylinder_wake`): exact states; 3 % of
-the entries moved by 5 of their channel's standard deviations; Gaussian noise of 2 % of
-each channel's standard deviation (seeds 0 and 1 for the last two).  Each model is
+part conserves energy.  For three parameter sets other than the tests' one (``--models``
+picks some by index), a record of ``--samples`` (3000) samples over ``--span`` growth
+times (``span / mu``) from (0.01, 0, 0) is fitted from the states alone by
+``HuberSINDy()`` and ``HuberSINDy(constraints="energy_preserving")``, in the wake's
+cases (:mod:`cylinder_wake`): exact states; 3 % of the entries moved by 5 of their
+channel's standard deviations; Gaussian noise of 2 % of each channel's standard
+deviation (seeds 0 and 1 for the last two).  Each model is
 simulated from the exact first state; the radius and level are averaged over the last
 fifth of the record.  The longer the span, the larger the share of the record on the
-limit cycle, where ``x2`` is constant and growth and saturation are one direction.
+limit cycle, where ``x2`` is constant and growth and saturation are one direction, and
+(at a fixed number of samples) the fewer samples per period of the oscillation.
 
-    python validation/mean_field.py [--span 20] [--seeds 2]
+    python validation/mean_field.py [--span 20] [--seeds 2] [--samples 3000] [--models 0,1,2]
 """
 
 from __future__ import annotations
@@ -53,9 +55,9 @@ def record(params, span: float, samples: int = 3000):
     return t, sol.y.T
 
 
-def one(params, span, case, seed, variant) -> dict:
+def one(params, span, case, seed, variant, samples: int = 3000) -> dict:
     mu, _w, a, g = params
-    t, exact = record(params, span)
+    t, exact = record(params, span, samples)
     x = contaminate(exact, case, seed)
     t0 = time.perf_counter()
     with warnings.catch_warnings(record=True) as caught:
@@ -90,14 +92,29 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--span", type=float, default=20.0, help="growth times (1 / mu)")
     parser.add_argument("--seeds", type=int, default=2)
+    parser.add_argument("--samples", type=int, default=3000, help="samples per record")
+    parser.add_argument(
+        "--models", default=None, help="comma-separated indices into MODELS (default: all)"
+    )
     parser.add_argument("--out", default=str(HERE / "results" / "mean_field"))
     args = parser.parse_args(argv)
+    if args.samples < 100:
+        parser.error(f"--samples must be at least 100; got {args.samples}")
+    models = MODELS
+    if args.models is not None:
+        try:
+            models = tuple(MODELS[int(i)] for i in args.models.split(","))
+        except (ValueError, IndexError):
+            parser.error(
+                f"--models takes indices from 0 to {len(MODELS) - 1} separated by commas; "
+                f"got {args.models!r}"
+            )
     cases = [("clean", 0)] + [(c, s) for c in ("glitches", "noise") for s in range(args.seeds)]
     rows = []
-    for params in MODELS:
+    for params in models:
         for case, seed in cases:
             for variant in VARIANTS:
-                rows.append(one(params, args.span, case, seed, variant))
+                rows.append(one(params, args.span, case, seed, variant, args.samples))
                 r = rows[-1]
                 print(
                     f"{params} {case} {seed} {variant}: within {r['within']} "
@@ -105,23 +122,34 @@ def main(argv=None) -> None:
                     f"warnings {r['warnings']} {r['seconds']:.1f} s",
                     flush=True,
                 )
+    options = "".join(
+        f" {flag} {value}"
+        for flag, value, default in (
+            ("--samples", args.samples, 3000), ("--models", args.models, None)
+        )
+        if value != default
+    )  # fmt: skip
     lines = [
         f"<!-- written by `python validation/mean_field.py --span {args.span:g} "
-        f"--seeds {args.seeds}` -->",
+        f"--seeds {args.seeds}{options}` -->",
         "",
-        f"Records of {args.span:g} growth times; radius and level over the truth's "
-        "(last fifth of the record).",
+        f"Records of {args.span:g} growth times, {args.samples} samples; radius and level "
+        "over the truth's (last fifth of the record); samples per period of the "
+        "oscillation (`2 pi / w` over the step).",
         "",
-        "| mu, w, a, g | model | within 5 % | bounded | radius | level | terms | warnings | time |",
-        "|---|---|---|---|---|---|---|---|---|",
+        "| mu, w, a, g | samples per period | model | within 5 % | bounded | radius | level "
+        "| terms | warnings | time |",
+        "|---|---|---|---|---|---|---|---|---|---|",
     ]
-    for params in MODELS:
+    for params in models:
+        mu, w = params[0], params[1]
+        per_period = 2 * np.pi / w / (args.span / mu / (args.samples - 1))
         for variant in VARIANTS:
             sel = [r for r in rows if r["params"] == params and r["variant"] == variant]
             radius = [r["radius"] for r in sel if r["bounded"]]
             level = [r["level"] for r in sel if r["bounded"]]
             lines.append(
-                f"| {', '.join(f'{v:g}' for v in params)} | {variant} | "
+                f"| {', '.join(f'{v:g}' for v in params)} | {per_period:.0f} | {variant} | "
                 f"{sum(r['within'] for r in sel)}/{len(sel)} | "
                 f"{sum(r['bounded'] for r in sel)}/{len(sel)} | "
                 f"{min(radius, default=np.nan):.3f} to {max(radius, default=np.nan):.3f} | "
@@ -133,7 +161,8 @@ def main(argv=None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     text = "\n".join(lines) + "\n"
-    (out / f"span_{args.span:g}.md").write_text(text)
+    name = f"span_{args.span:g}" + ("" if args.samples == 3000 else f"_{args.samples}")
+    (out / f"{name}.md").write_text(text)
     print(text)
 
 

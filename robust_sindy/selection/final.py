@@ -15,7 +15,9 @@ refit of the selected support:
   ``SIGNIFICANCE_ESTIMATED``.
 * Then the terms the selection left out are tested (:func:`missed_terms`): the one
   with the largest robust score t in an equation, at ``ADD_SIGNIFICANCE`` or more, is
-  put in and both stages run again; it stays when they keep it.
+  put in and both stages run again; it stays when they keep it (and, in the weak form,
+  where it displaced selected terms, when the score under the noise the terms carry
+  does not refuse the exchange).
 
 Read more in the user guide: :doc:`/guide/final`.
 """
@@ -126,6 +128,7 @@ def final_selection(
     method: str,
     solver: str | None,
     options: dict,
+    refuse=None,
 ) -> FinalSelection:
     """Both stages on the kept samples (see the module docstring).
 
@@ -133,7 +136,8 @@ def final_selection(
     user units, ``delta`` the chosen thresholds (user units), ``floor_tol`` the
     threshold raised to the noise floor, ``reference`` the derivatives of higher order
     of the kept samples (estimated derivatives; None otherwise), ``method`` the Huber
-    method of the drops.
+    method of the drops, ``refuse`` (optional) the test of :func:`missed_terms` for a
+    put-back term that displaces selected ones.
     """
     coef = np.array(coef, dtype=float)  # the drops write into it; the caller's stays
     delta_s = kept.delta_standard(delta)
@@ -150,11 +154,13 @@ def final_selection(
         coef, pruned = prune(kept, design, coef, delta_s, refit, bar)
         return FinalSelection(coef, ratio, truncation, pruned, np.full(coef.shape, np.nan))
 
-    return missed_terms(kept, design, stages(coef), delta_s, stages, refit, ~selected)
+    return missed_terms(
+        kept, design, stages(coef), delta_s, stages, refit, ~selected, refuse=refuse
+    )
 
 
 def missed_terms(
-    kept: Problem, th, final: FinalSelection, delta_s, stages, refit, candidates
+    kept: Problem, th, final: FinalSelection, delta_s, stages, refit, candidates, refuse=None
 ) -> FinalSelection:
     """Put back terms the selection left out that the final selection's tests keep.
 
@@ -165,8 +171,12 @@ def missed_terms(
     (``refit(coef, cols)``) and ``stages`` (the drops and the pruning, from
     coefficients to a :class:`FinalSelection`) run again.  An equation
     keeps the outcome where the term survived it; each term is tried once, for at most
-    ``STAGE_ROUNDS`` rounds.  Returns the final selection with the terms kept in
-    ``added`` (their score t) and the other arrays merged.
+    ``STAGE_ROUNDS`` rounds.  Where the outcome also left out terms of the model it
+    started from, ``refuse`` (optional: ``refuse(current, outcome, cols)``, standardised
+    coefficients, a bool per equation of ``cols``; in the weak form
+    :func:`~.variables.displacement_refused`) may still refuse it.  Returns the final
+    selection with the terms kept in ``added`` (their score t) and the other arrays
+    merged.
     """
     scaler, yk, segments = kept.scaler, kept.y_s, kept.segments
     open_ = np.array(candidates, dtype=bool)
@@ -184,6 +194,12 @@ def missed_terms(
         trial[best[cols], cols] = 1.0  # a placeholder: the refit fits the support
         tried = stages(refit(trial, cols))
         kept_cols = cols[tried.coef[best[cols], cols] != 0]
+        if refuse is not None and kept_cols.size:
+            displaced = np.any((coef[:, kept_cols] != 0) & (tried.coef[:, kept_cols] == 0), 0)
+            at = kept_cols[displaced]
+            if at.size:
+                no = refuse(scaler.coef_to_standard(coef), scaler.coef_to_standard(tried.coef), at)
+                kept_cols = kept_cols[~np.isin(kept_cols, at[no])]
         if kept_cols.size == 0:
             continue
         merged = {}

@@ -57,6 +57,7 @@ __all__ = [
     "KEEP_EVIDENCE",
     "Rescored",
     "RowNoise",
+    "displacement_refused",
     "dropped_evidence",
     "gls_score",
     "rescore_supports",
@@ -507,6 +508,36 @@ def search_penalty(rows: int, terms: int, kept: int) -> float:
         return 0.0
     gamma = min(max(1.0 - np.log(rows) / (2.0 * np.log(terms)), 0.0), 1.0)
     return 2.0 * gamma * max(np.log(max(terms - kept, 1) / (kept + 1)), 0.0)
+
+
+def displacement_refused(g, y, current, outcome, noise: RowNoise, cols) -> np.ndarray:
+    """Per equation of ``cols`` (integer array), whether the score under the noise the
+    terms carry refuses the support ``outcome`` in place of ``current`` (coefficients,
+    standardised, p x n): where the states' noise explains the residuals of
+    ``current`` (chi-square at most :data:`NOISE_EXPLAINS` times the rows, where the
+    score is a yardstick) and its :func:`gls_score` plus ``log(rows)`` per term is
+    lower than the outcome's by more than
+    :data:`~robust_sindy.selection.criteria.MIN_BIC_MARGIN`.
+
+    The final selection's put-back terms (:func:`~.final.missed_terms`) may replace
+    selected ones: a true term that a few stand-ins had replaced on the path displaces
+    them, but a term whose column carries little of the states' noise can as well
+    displace true terms whose columns carry much of it (a shift mode's ``x2^2`` for its
+    drive ``x0^2 + x1^2`` of noisy oscillating states), which the Huber loss on the rows
+    then prefers."""
+    rows = g.shape[0]
+    bound = NOISE_EXPLAINS * rows
+    penalty = np.log(max(rows, 2))
+    out = np.zeros(len(cols), dtype=bool)
+    for i, k in enumerate(cols):
+        now, _ = gls_score(g, y[:, k], current[:, k] != 0, current[:, k], noise, k)
+        if not now <= bound:
+            continue
+        new, _ = gls_score(g, y[:, k], outcome[:, k] != 0, outcome[:, k], noise, k)
+        count_now = int(np.count_nonzero(current[:, k]))
+        count_new = int(np.count_nonzero(outcome[:, k]))
+        out[i] = (new + penalty * count_new) - (now + penalty * count_now) > MIN_BIC_MARGIN
+    return out
 
 
 def dropped_evidence(g, y, before, after, start, noise: RowNoise, tol: float = 0.0) -> np.ndarray:
