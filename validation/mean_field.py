@@ -38,9 +38,11 @@ HERE = Path(__file__).parent
 #: (mu, w, a, g) of the models fitted.
 MODELS = ((0.05, 1.0, 1.0, 0.5), (0.2, 2.0, 0.5, 1.0), (0.1, 0.7, 2.0, 0.3))
 VARIANTS = {"unconstrained": None, "energy preserving": "energy_preserving"}
+#: Samples per record unless ``--samples`` says otherwise.
+SAMPLES = 3000
 
 
-def record(params, span: float, samples: int = 3000):
+def record(params, span: float, samples: int = SAMPLES):
     mu, w, a, g = params
 
     def rhs(_, v):
@@ -55,7 +57,7 @@ def record(params, span: float, samples: int = 3000):
     return t, sol.y.T
 
 
-def one(params, span, case, seed, variant, samples: int = 3000) -> dict:
+def one(params, span, case, seed, variant, samples: int = SAMPLES) -> dict:
     mu, _w, a, g = params
     t, exact = record(params, span, samples)
     x = contaminate(exact, case, seed)
@@ -92,7 +94,7 @@ def main(argv=None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--span", type=float, default=20.0, help="growth times (1 / mu)")
     parser.add_argument("--seeds", type=int, default=2)
-    parser.add_argument("--samples", type=int, default=3000, help="samples per record")
+    parser.add_argument("--samples", type=int, default=SAMPLES, help="samples per record")
     parser.add_argument(
         "--models", default=None, help="comma-separated indices into MODELS (default: all)"
     )
@@ -103,12 +105,15 @@ def main(argv=None) -> None:
     models = MODELS
     if args.models is not None:
         try:
-            models = tuple(MODELS[int(i)] for i in args.models.split(","))
-        except (ValueError, IndexError):
+            picked = [int(i) for i in args.models.split(",")]
+        except ValueError:
+            picked = []
+        if not picked or not all(0 <= i < len(MODELS) for i in picked):
             parser.error(
                 f"--models takes indices from 0 to {len(MODELS) - 1} separated by commas; "
                 f"got {args.models!r}"
             )
+        models = tuple(MODELS[i] for i in picked)
     cases = [("clean", 0)] + [(c, s) for c in ("glitches", "noise") for s in range(args.seeds)]
     rows = []
     for params in models:
@@ -125,7 +130,7 @@ def main(argv=None) -> None:
     options = "".join(
         f" {flag} {value}"
         for flag, value, default in (
-            ("--samples", args.samples, 3000), ("--models", args.models, None)
+            ("--samples", args.samples, SAMPLES), ("--models", args.models, None)
         )
         if value != default
     )  # fmt: skip
@@ -161,7 +166,7 @@ def main(argv=None) -> None:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     text = "\n".join(lines) + "\n"
-    name = f"span_{args.span:g}" + ("" if args.samples == 3000 else f"_{args.samples}")
+    name = f"span_{args.span:g}" + ("" if args.samples == SAMPLES else f"_{args.samples}")
     (out / f"{name}.md").write_text(text)
     print(text)
 
