@@ -99,7 +99,7 @@ from .timeseries.temporal import (
     temporal_screen,
 )
 from .timeseries.trajectories import Trajectories, is_frame, is_series
-from .timeseries.weak import WeakRows, support_half_width, weak_rows
+from .timeseries.weak import LOCAL_SAMPLES, WeakRows, support_half_width, weak_rows
 
 __all__ = [
     "FORMULATIONS",
@@ -758,7 +758,7 @@ class HuberSINDy(BaseEstimator):
         terms = library.n_output_features_
         rows = weak_rows(
             data, states, library.transform(inputs), support.half_width,
-            min_rows=2 * MIN_ROWS_PER_TERM * terms,
+            min_rows=2 * MIN_ROWS_PER_TERM * terms, noise=screen.scale,
         )  # fmt: skip
         if rows.n_rows <= MIN_ROWS_PER_TERM * terms:
             if self.formulation == "weak":
@@ -774,8 +774,14 @@ class HuberSINDy(BaseEstimator):
             )
             return None, few, ""
         independent = rows.effective_rows()
+        quadrature = (
+            f", integrated on local fits of {rows.stencil.samples} samples (the states' "
+            "noise outweighs the wider fits' quadrature error)"
+            if rows.stencil.samples != LOCAL_SAMPLES
+            else ""
+        )
         shares = (
-            f"test functions of half width {support.samples:.0f} samples, about "
+            f"test functions of half width {support.samples:.0f} samples{quadrature}, about "
             f"{independent:.0f} independent rows for {terms} terms"
         )
         few_rows = independent <= MIN_INDEPENDENT_ROWS_PER_TERM * terms

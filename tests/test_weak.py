@@ -16,7 +16,10 @@ from robust_sindy.estimator import (
 from robust_sindy.timeseries.temporal import noise_flag_bound, relative_noise, temporal_screen
 from robust_sindy.timeseries.trajectories import Trajectories
 from robust_sindy.timeseries.weak import (
+    LOCAL_SAMPLES,
     MIN_SUPPORT_SAMPLES,
+    WIDE_SAMPLES,
+    choose_stencil,
     support_half_width,
     weak_rows,
     weight_functions,
@@ -69,6 +72,61 @@ def test_the_quadrature_holds_on_uniformly_random_times(seed):
     assert np.all(np.abs(lhs - rhs).max(axis=0) <= 1e-2 * np.abs(rhs).max(axis=0))
     amplification = np.linalg.norm(dphi, axis=1)
     assert amplification.max() <= 3.0 * np.median(amplification)
+
+
+def _lorenz_at(t):
+    import scipy.integrate
+
+    return scipy.integrate.solve_ivp(
+        LORENZ.rhs, (0.0, t[-1]), LORENZ.x0, t_eval=t, method="DOP853", rtol=1e-11,
+        atol=1e-11,
+    ).y.T  # fmt: skip
+
+
+def _stencil_case(seed, level, irregular):
+    """Lorenz on 2000 (random or uniform) times, noise ``level`` of each state's RMS: the
+    choice, and the targets' error of both stencils against the clean states' integrals."""
+    rng = np.random.default_rng([seed, int(irregular)])
+    t = np.sort(rng.uniform(0.0, 20.0, 2000)) if irregular else np.arange(2000) * 0.01
+    t = t - t[0]
+    clean = _lorenz_at(t)
+    x = clean + level * np.sqrt(np.mean(clean**2, axis=0)) * rng.normal(size=clean.shape)
+    screen = temporal_screen(x, t)
+    h = support_half_width(Trajectories.from_user(x, t), screen).half_width
+    chosen, _ = choose_stencil([t], [screen.repaired], screen.scale, h)
+    truth = -weight_functions(t, h)[1] @ clean  # the narrow quadrature's error is far below
+    errors = {
+        w: np.linalg.norm(-weight_functions(t, h, samples=w)[1] @ x - truth)
+        for w in (LOCAL_SAMPLES, WIDE_SAMPLES)
+    }
+    return chosen, errors, (t, x, screen, h)
+
+
+@pytest.mark.parametrize("seed", range(3))
+def test_the_stencil_is_the_one_whose_targets_err_less(seed):
+    # At uniformly random times the narrow stencil's rows carry more of the states'
+    # noise; the wider one's quadrature error is larger.  At 5 % noise the wider stencil
+    # is chosen and its targets are closer to the clean states' integrals (by a margin:
+    # at most 0.9 of the narrow stencil's error); at 0.1 % noise the narrow one is kept
+    # and is the closer (at most 0.8 of the wider one's error); at uniform steps the
+    # narrow one is kept at 0.1 % noise.
+    chosen, errors, _ = _stencil_case(seed, 0.05, irregular=True)
+    assert chosen.samples == WIDE_SAMPLES and chosen.ratio < 1.0
+    assert errors[WIDE_SAMPLES] <= 0.9 * errors[LOCAL_SAMPLES]
+    chosen, errors, _ = _stencil_case(seed, 0.001, irregular=True)
+    assert chosen.samples == LOCAL_SAMPLES and chosen.ratio > 1.0
+    assert errors[LOCAL_SAMPLES] <= 0.8 * errors[WIDE_SAMPLES]
+    chosen, _, _ = _stencil_case(seed, 0.001, irregular=False)
+    assert chosen.samples == LOCAL_SAMPLES and chosen.ratio > 1.0
+
+
+def test_the_stencil_choice_is_unit_free():
+    _, _, (t, _, screen, h) = _stencil_case(0, 0.02, irregular=True)
+    d, c = np.array([1e-3, 10.0, 1e3]), 100.0
+    one, _ = choose_stencil([t], [screen.repaired], screen.scale, h)
+    other, _ = choose_stencil([t * c], [screen.repaired * d], screen.scale * d, h * c)
+    assert other.samples == one.samples
+    assert other.ratio == pytest.approx(one.ratio, rel=1e-6)
 
 
 def test_the_support_is_unit_free_and_grows_with_the_noise():
@@ -171,6 +229,24 @@ def test_auto_keeps_measured_derivatives_and_says_which_form_it_used():
     assert states.diagnostics_.formulation == "weak"
     assert "noise" in states.diagnostics_.formulation_reason
     assert "formulation:" in repr(states.diagnostics_)
+
+
+def test_the_fit_says_which_stencil_its_quadrature_used():
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.uniform(0.0, 15.0, 1500))
+    t -= t[0]
+    clean = _lorenz_at(t)
+    unit = np.sqrt(np.mean(clean**2, axis=0)) * rng.normal(size=clean.shape)
+    fits = {}
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", rs.IdentificationWarning)
+        for level in (0.001, 0.05):
+            fits[level] = rs.HuberSINDy(formulation="weak").fit(clean + level * unit, t)
+    quiet, loud = fits[0.001], fits[0.05]
+    assert quiet.weak_.stencil.samples == LOCAL_SAMPLES
+    assert "local fits of" not in quiet.diagnostics_.formulation_reason
+    assert loud.weak_.stencil.samples == WIDE_SAMPLES
+    assert f"local fits of {WIDE_SAMPLES} samples" in loud.diagnostics_.formulation_reason
 
 
 def test_auto_keeps_the_strong_form_where_the_temporal_screen_found_outliers():
