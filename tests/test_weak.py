@@ -33,6 +33,15 @@ def _lorenz(t_end=20.0, dt=0.01):
     return LORENZ.generate(t_end=t_end, dt=dt)
 
 
+def _lorenz_at(t):
+    import scipy.integrate
+
+    return scipy.integrate.solve_ivp(
+        LORENZ.rhs, (0.0, t[-1]), LORENZ.x0, t_eval=t, method="DOP853", rtol=1e-11,
+        atol=1e-11,
+    ).y.T  # fmt: skip
+
+
 @pytest.mark.parametrize("irregular", [False, True])
 def test_integration_by_parts_holds_on_the_samples(irregular):
     # -int phi' x = int phi xdot exactly; the product quadrature on 20 samples per half
@@ -57,30 +66,16 @@ def test_the_quadrature_holds_on_uniformly_random_times(seed):
     # integration by parts to 1 % of the largest integral (a cubic through four
     # samples, with lines where it swung: up to 3 %), and no row's noise is amplified
     # more than 3 times the typical row's.
-    import scipy.integrate
-
     rng = np.random.default_rng(seed)
     t = np.sort(rng.uniform(0.0, 20.0, 2000))
     t -= t[0]
-    x = scipy.integrate.solve_ivp(
-        LORENZ.rhs, (0.0, t[-1]), LORENZ.x0, t_eval=t, method="DOP853", rtol=1e-11,
-        atol=1e-11,
-    ).y.T  # fmt: skip
+    x = _lorenz_at(t)
     xdot = np.array([LORENZ.rhs(0.0, v) for v in x])
     phi, dphi, _ = weight_functions(t, 0.2)
     lhs, rhs = -dphi @ x, phi @ xdot
     assert np.all(np.abs(lhs - rhs).max(axis=0) <= 1e-2 * np.abs(rhs).max(axis=0))
     amplification = np.linalg.norm(dphi, axis=1)
     assert amplification.max() <= 3.0 * np.median(amplification)
-
-
-def _lorenz_at(t):
-    import scipy.integrate
-
-    return scipy.integrate.solve_ivp(
-        LORENZ.rhs, (0.0, t[-1]), LORENZ.x0, t_eval=t, method="DOP853", rtol=1e-11,
-        atol=1e-11,
-    ).y.T  # fmt: skip
 
 
 def _stencil_case(seed, level, irregular):
@@ -94,11 +89,9 @@ def _stencil_case(seed, level, irregular):
     screen = temporal_screen(x, t)
     h = support_half_width(Trajectories.from_user(x, t), screen).half_width
     chosen, _ = choose_stencil([t], [screen.repaired], screen.scale, h)
-    truth = -weight_functions(t, h)[1] @ clean  # the narrow quadrature's error is far below
-    errors = {
-        w: np.linalg.norm(-weight_functions(t, h, samples=w)[1] @ x - truth)
-        for w in (LOCAL_SAMPLES, WIDE_SAMPLES)
-    }
+    slopes = {w: weight_functions(t, h, samples=w)[1] for w in (LOCAL_SAMPLES, WIDE_SAMPLES)}
+    truth = -slopes[LOCAL_SAMPLES] @ clean  # the narrow quadrature's error is far below
+    errors = {w: np.linalg.norm(-d @ x - truth) for w, d in slopes.items()}
     return chosen, errors, (t, x, screen, h)
 
 

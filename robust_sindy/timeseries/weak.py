@@ -398,7 +398,7 @@ def choose_stencil(ts, states, scale, h: float, spacing: float = SPACING):
     s2 = scale**2
     with np.errstate(divide="ignore", invalid="ignore"):
         ratio = (added - s2 * noise + STENCIL_EVIDENCE * s2 * np.sqrt(variance)) / (s2 * removed)
-    judged = np.isfinite(scale) & (scale > 0) & np.isfinite(ratio) & (removed > 0)
+    judged = np.isfinite(ratio) & (removed > 0)  # a state without a measured noise: inf
     worst = float(np.max(np.where(judged, ratio, np.inf))) if n else np.inf
     if worst < 1.0:
         return Stencil(WIDE_SAMPLES, worst), [(phi, dphi) for phi, dphi, _ in wide]
