@@ -581,6 +581,55 @@ def test_a_spiked_state_the_pilot_on_every_sample_fits_is_left_out():
     assert np.array_equal(model.support_, system.coef.T != 0)
 
 
+def _crowded_glitches(seed, m=2000, n=8, noise=0.05):
+    """A degree-2 library of ``n`` smooth states and a sparse model, in which half of
+    the samples (four in five inside eight bursts of 40) have one state glitched by 0.2
+    to 3 times its amplitude: their own rows, the rows of the clean states (the
+    repaired ones), the targets, the true coefficients and the touched samples."""
+    rng = np.random.default_rng(seed)
+    t = np.linspace(0.0, 40.0, m)
+    states = np.sin(rng.uniform(0.5, 2.0, n) * t[:, None] + rng.uniform(0.0, 6.3, n))
+    library = PolynomialLibrary(degree=2).fit(states)
+    clean = library.transform(states)
+    coef = np.zeros((clean.shape[1], n))
+    for k in range(n):
+        terms = rng.choice(clean.shape[1], 3, replace=False)
+        coef[terms, k] = rng.choice([-1.0, 1.0], 3) * rng.uniform(0.5, 2.0, 3)
+    y = clean @ coef + noise * rng.normal(size=(m, n))
+    burst = np.zeros(m, dtype=bool)
+    for first in rng.choice(m - 40, 8, replace=False):
+        burst[first : first + 40] = True
+    touched = rng.random(m) < np.where(burst, 0.8, 0.45)
+    glitched = states.copy()
+    size = rng.choice([-1.0, 1.0], m) * np.exp(rng.uniform(np.log(0.2), np.log(3.0), m))
+    glitched[np.arange(m), rng.integers(0, n, m)] += np.where(touched, size, 0.0)
+    return library.transform(glitched), clean, y, coef, touched
+
+
+def test_a_glitched_row_is_not_excused_by_the_glitches_around_it():
+    # Half of the samples hold a glitched state (more than the row screen can leave
+    # out: it starts from every sample), crowded in bursts.  Each is offered the row
+    # of its repaired readings; the two rows of a sample are judged at one bound, so
+    # that the glitched rows around it, which raise the local scale of the own rows'
+    # residuals, do not excuse it.  No sample whose own row is gross under the true
+    # model (beyond five noise levels in some equation) keeps that row, on any of
+    # six draws (the bound of each row's own residuals kept 8 of them on two draws).
+    noise = 0.05
+    for seed in range(6):
+        own, clean, y, coef, touched = _crowded_glitches(seed, noise=noise)
+        at = np.flatnonzero(touched)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            s = screen_rows(
+                own, y, start=~touched, segments=[slice(0, y.shape[0])],
+                alternative=(at, clean[at]),
+            )  # fmt: skip
+        gross = (np.abs(y - own @ coef) > 5 * noise).any(axis=1)
+        kept_own = touched & ~s.outliers & ~s.swapped
+        assert not (kept_own & gross).any(), (seed, np.flatnonzero(kept_own & gross))
+        assert s.outliers.mean() < 0.01, seed  # the repaired rows keep their samples
+
+
 def _steep_problem(seed, m=1500, sigma=1e-3):
     """x' = -x^3 observed with noisy states, most samples near 0 (a trajectory that
     rests and makes excursions): the residuals the state noise gives grow as

@@ -717,9 +717,10 @@ def screen_rows(
        sample whose alternative row is not gross under the final pilot is kept with
        that row, a kept sample takes its alternative row where that row's residual is
        the smaller (both judged by a pilot fitted on the kept samples with the
-       alternative rows in), and the iteration runs once more from the samples so
-       kept: a glitch in one entry costs that entry, not the sample, and a moderate
-       glitch does not stay in the fit.
+       alternative rows in, at one bound: that of its own residuals, which glitched
+       rows crowding a sample's neighbourhood do not raise), and the iteration runs
+       once more from the samples so kept: a glitch in one entry costs that entry, not
+       the sample, and a moderate glitch does not stay in the fit.
 
     With ``noise`` (the noise of the states carried through the library, one array per
     state), the bound of a sample is also at least the residual that this noise gives
@@ -843,10 +844,12 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     ``outcome`` (an iteration's result) kept, with the ``alternative`` rows in (the
     final pilot was fitted with the samples' own rows, which bend it towards a glitched
     row it kept).  Under it, a flagged sample takes its alternative row when that row is
-    not gross, a kept one when that row's residual is the smaller; then the iteration
-    runs again from the samples kept.  The judge's choice of ``delta`` starts from the
-    iteration's last pilot, and the iteration's from the judge (pilots on nearly the
-    same samples and rows)."""
+    not gross, a kept one when that row's residual is the smaller, both at the judge's
+    bound (the own rows' residuals would raise the local scale that excuses them where
+    glitched samples crowd, and with half of the samples touched the screen's start
+    holds every sample); then the iteration runs again from the samples kept.  The
+    judge's choice of ``delta`` starts from the iteration's last pilot, and the
+    iteration's from the judge (pilots on nearly the same samples and rows)."""
     flags, scale = outcome.flags, outcome.scale
     at, rows = np.asarray(alternative[0], dtype=int), alternative[1]
     swapped = np.zeros(flags.size, dtype=bool)
@@ -860,8 +863,12 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     r_own = r_alt.copy()
     r_own[at] = pilots.y[at] - pilots.theta[at] @ coef
     centre = np.median(r_alt[~flags], axis=0)
-    own = judge.scaled(r_own - centre, scale, coef)[at]
-    alt = judge.scaled(r_alt - centre, scale, coef)[at]
+    # Both rows of a sample are judged at one bound, the judge's own (the local scale
+    # of its residuals, with the repaired rows in): the own rows' residuals would
+    # raise the local scale that excuses them where glitched samples crowd.
+    bound = judge.bound_of(r_alt - centre, scale, coef)
+    own = gross_ratio(r_own - centre, bound, judge.cutoff)[at]
+    alt = gross_ratio(r_alt - centre, bound, judge.cutoff)[at]
     take = np.where(flags[at], alt <= 1, alt < own)
     if not take.any():
         return outcome, swapped
