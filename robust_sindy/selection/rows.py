@@ -717,7 +717,7 @@ def screen_rows(
        sample whose alternative row is not gross under the final pilot is kept with
        that row, a kept sample takes its alternative row where that row's residual is
        the smaller (both judged by a pilot fitted on the kept samples with the
-       alternative rows in, at one bound: that of its own residuals, which glitched
+       alternative rows in, at one bound: that of this pilot's residuals, which glitched
        rows crowding a sample's neighbourhood do not raise), and the iteration runs
        once more from the samples so kept: a glitch in one entry costs that entry, not
        the sample, and a moderate glitch does not stay in the fit.
@@ -860,15 +860,16 @@ def _second_chance(pilots: _Pilots, outcome, alternative):
     judge = pilots.with_theta(mixed)
     coef, _, delta = judge.pilot(~flags, (outcome.delta, outcome.coef))
     r_alt = pilots.y - mixed @ coef
-    r_own = r_alt.copy()
-    r_own[at] = pilots.y[at] - pilots.theta[at] @ coef
     centre = np.median(r_alt[~flags], axis=0)
+    r_alt -= centre
+    r_own = r_alt.copy()
+    r_own[at] = pilots.y[at] - pilots.theta[at] @ coef - centre
     # Both rows of a sample are judged at one bound, the judge's own (the local scale
     # of its residuals, with the repaired rows in): the own rows' residuals would
     # raise the local scale that excuses them where glitched samples crowd.
-    bound = judge.bound_of(r_alt - centre, scale, coef)
-    own = gross_ratio(r_own - centre, bound, judge.cutoff)[at]
-    alt = gross_ratio(r_alt - centre, bound, judge.cutoff)[at]
+    bound = judge.bound_of(r_alt, scale, coef)
+    own = gross_ratio(r_own, bound, judge.cutoff)[at]
+    alt = gross_ratio(r_alt, bound, judge.cutoff)[at]
     take = np.where(flags[at], alt <= 1, alt < own)
     if not take.any():
         return outcome, swapped
