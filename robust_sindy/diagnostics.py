@@ -345,6 +345,11 @@ class Diagnostics:
     missing_in_gaps : int
         Of those, the entries in gaps wider than the screen's half window: their
         samples were suspects of the row screen.
+    missing_far_samples : int
+        Samples at which some state or control was missing with no reading within half
+        of ``GAP_STEPS`` median steps (:func:`~robust_sindy.timeseries.missing.far_from_readings`):
+        not filled into the fit (left out of the strong form's rows; under no test
+        function of the weak form, which they split as a gap in the record does).
     missing_controls : int
         Missing readings of the controls (filled the same way; their samples suspects).
     missing_derivative_samples : int
@@ -393,6 +398,7 @@ class Diagnostics:
     errors_in_variables: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     missing_states: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=int))
     missing_in_gaps: int = 0
+    missing_far_samples: int = 0
     missing_controls: int = 0
     missing_derivative_samples: int = 0
     temporal_flagged_left_out: int = 0
@@ -516,7 +522,9 @@ class Diagnostics:
             "  missing readings: "
             + (
                 f"states {self.missing_states.tolist()} (filled by local fits; "
-                f"{self.missing_in_gaps} in gaps wider than the screen's window), controls "
+                f"{self.missing_in_gaps} in gaps wider than the screen's window; "
+                f"{self.missing_far_samples} samples too far from a reading to fill, left "
+                "out), controls "
                 f"{self.missing_controls}, samples without a measured derivative "
                 f"{self.missing_derivative_samples} (left out)"
                 if self.missing_states.sum()
@@ -610,8 +618,24 @@ def _outliers(d) -> float:
     out = d.flagged_fraction - d.unresolved_samples / n
     if d.formulation == "weak":  # the counts are of test functions, not of samples
         return max(entries, out)
+    # The samples the model screen left out (not those without a target or too far from
+    # a reading to fill: they are not outliers), less those with a flagged entry.
     dropped_flagged = d.temporal_flagged_samples - d.readmitted_samples
-    return max(entries, out - dropped_flagged / n)
+    return max(entries, (d.model_flagged_samples - dropped_flagged) / n)
+
+
+def _absent(d) -> str:
+    """The samples left out for what was not measured, as the warning on samples left
+    out names them (the strong form's counts; empty where none)."""
+    if d.formulation == "weak":
+        return ""
+    n = max(d.n_samples, 1)
+    parts = []
+    if d.missing_far_samples:
+        parts.append(f"{100 * d.missing_far_samples / n:.0f} % too far from a reading to fill")
+    if d.missing_derivative_samples:
+        parts.append(f"{100 * d.missing_derivative_samples / n:.0f} % without a measured x_dot")
+    return "".join(", " + part for part in parts)
 
 
 def _unresolved(d) -> float:
@@ -785,7 +809,8 @@ RULES: tuple[Rule, ...] = (
         lambda d, _: (
             f"{100 * d.flagged_fraction:.0f} % of the samples were left out of the "
             f"fit ({100 * _outliers(d):.0f} % flagged as outliers, "
-            f"{100 * _unresolved(d):.0f} % with unresolved derivatives): what is left may "
+            f"{100 * _unresolved(d):.0f} % with unresolved derivatives{_absent(d)}): what "
+            "is left may "
             "not excite every term; check the data (screened_, unresolved_), and measure "
             "x_dot or sample faster"
         ),
@@ -1166,7 +1191,7 @@ def diagnose(
     keep, screening = rows.keep, rows.screening
     screened = ~keep
     absent = (  # samples without a measured derivative (strong form only)
-        missing.derivative_rows if missing is not None and weak is None else np.zeros_like(keep)
+        missing.absent_rows if missing is not None and weak is None else np.zeros_like(keep)
     )
     m, p = screened.size, th.shape[1]
     coef_t = coef.T

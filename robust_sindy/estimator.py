@@ -545,7 +545,13 @@ class HuberSINDy(BaseEstimator):
             )
             design, segments = weak.G, weak.segments
             row_flags = weak.touched(flags | missing.controls_suspect, data)[:, None]
-        scaler = Standardizer.from_data(design if weak is not None else clean, deriv.y)
+        far = missing.far_rows if weak is None else None
+        if far is not None and far.any():
+            # Samples too far from a reading to fill are left out (below): not of the
+            # columns' scales either.
+            scaler = Standardizer.from_data(clean[~far], deriv.y[~far])
+        else:
+            scaler = Standardizer.from_data(design if weak is not None else clean, deriv.y)
         del clean  # a copy of the library, not needed further
         noise = noise_columns(library, z, temporal, scaler.theta_scale)
         sample_noise = noise
@@ -553,8 +559,9 @@ class HuberSINDy(BaseEstimator):
             noise = weak.noise(noise, data)
         problem = Problem(design, deriv.y, scaler, segments, noise)
         pilot = huber_method(self.method)
-        # A missing measured derivative: no target (the weak form uses none).
-        absent = missing.derivative_rows if weak is None else np.zeros(problem.shape[0], bool)
+        # A missing measured derivative: no target (the weak form uses none); a reading
+        # too far to fill: no row (the weak form's test functions do not reach it).
+        absent = missing.absent_rows if weak is None else np.zeros(problem.shape[0], bool)
         stages.start("row screen")
         rows = screen_samples(
             problem, row_flags, deriv.unresolved | absent, measured=deriv.measured,
@@ -751,14 +758,14 @@ class HuberSINDy(BaseEstimator):
                     "derivatives of states this noisy cost the strong form more than the "
                     "repairs cost the integrals"
                 )
-        support = support_half_width(data, screen)
+        support = support_half_width(data, screen, missing.suspect)
         states = temporal.repaired if self.screen else z[:, : data.n_states]
         inputs = z.copy()
         inputs[:, : data.n_states] = states  # the library of the repaired states
         terms = library.n_output_features_
         rows = weak_rows(
             data, states, library.transform(inputs), support.half_width,
-            min_rows=2 * MIN_ROWS_PER_TERM * terms, noise=screen.scale,
+            min_rows=2 * MIN_ROWS_PER_TERM * terms, noise=screen.scale, cut=missing.far_rows,
         )  # fmt: skip
         if rows.n_rows <= MIN_ROWS_PER_TERM * terms:
             if self.formulation == "weak":

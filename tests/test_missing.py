@@ -10,6 +10,7 @@ import scipy.integrate
 
 import robust_sindy as rs
 from robust_sindy.cli import main
+from robust_sindy.timeseries.missing import far_from_readings, long_gaps
 from robust_sindy.timeseries.temporal import fill_missing, temporal_screen
 from robust_sindy.timeseries.trajectories import GAP_STEPS, gapless_pieces
 from robust_sindy.timeseries.weak import weight_functions
@@ -108,6 +109,139 @@ def test_missing_derivatives_controls_and_no_screen():
     found = {(k, names[j]) for k, j in zip(*np.nonzero(model.coef_), strict=True)}
     assert found == {(0, "x1"), (1, "x0"), (1, "x1"), (1, "u0"), (1, "x0^3")}
     assert model.diagnostics_.missing_controls == 150
+
+
+def test_samples_far_from_any_reading_are_cut_in_time_like_a_gap():
+    # A run of missing readings is filled where its samples are near a reading; where
+    # some channel has no reading within half a gap (GAP_STEPS / 2 median steps), the
+    # sample is cut.  Measured in time: the same cut at any units of time, and at
+    # irregular times by the nearest reading's distance.
+    m = 400
+    lost = np.zeros((m, 2), dtype=bool)
+    lost[50:58, 0] = True  # 8 missing: 9 steps between readings, not a gap
+    lost[100:109, 1] = True  # 9 missing: 10 steps; the middle sample is 5 from both ends
+    lost[200:250, 0] = True  # 50 missing: i + 1 and 50 - i steps from the readings
+    lost[390:, 1] = True  # the last 10: beyond the last reading
+    segments = [slice(0, m)]
+    far = far_from_readings(lost, [np.arange(m, dtype=float)], segments)
+    expected = np.zeros(m, dtype=bool)
+    expected[104] = True
+    expected[204:246] = True
+    expected[394:] = True  # 5 or more steps past the last reading (389)
+    assert np.array_equal(far, expected)
+    for scale in (1e-3, 7.0, 1e6):
+        t = 5.0 + scale * np.arange(m, dtype=float)
+        assert np.array_equal(far_from_readings(lost, [t], segments), expected)
+    # Without times (measured derivatives), equally spaced samples.
+    assert np.array_equal(far_from_readings(lost, None, segments), expected)
+    rng = np.random.default_rng(3)
+    for _ in range(5):
+        t = np.sort(rng.uniform(0.0, 1.0, m))
+        gone = rng.random((m, 2)) < 0.02
+        gone[rng.integers(0, m - 60) :][:60, rng.integers(0, 2)] = True
+        cut = far_from_readings(gone, [t], segments)
+        step = np.median(np.diff(t))
+        far = np.zeros(m, dtype=bool)
+        for k in range(2):
+            read = t[~gone[:, k]]  # each channel's step: that of its own readings
+            reach = GAP_STEPS / 2 * max(step, np.median(np.diff(read)))
+            far |= np.abs(t[:, None] - read[None, :]).min(axis=1) > reach
+        assert np.array_equal(cut, far)
+        # The pieces between cut samples; no test function reaches a cut sample.
+        pieces = gapless_pieces(t, cut)
+        inside = np.zeros(m, dtype=bool)
+        for p in pieces:
+            inside[p] = True
+        assert not (inside & cut).any()
+        phi, _, _ = weight_functions(t, 10 * np.median(np.diff(t)), cut=cut)
+        assert not (phi[:, cut] != 0).any()
+    # A channel read every tenth sample (a slower sensor) has its own step: nothing is
+    # far from its readings, and no run of its missing entries is long.
+    slow = np.ones((m, 1), dtype=bool)
+    slow[3::10] = False
+    t = np.arange(m, dtype=float)
+    assert not far_from_readings(slow, [t], segments)[3:-7].any()
+    assert not long_gaps(slow, segments, t=[t])[3:-7].any()
+    # Runs of more than four of the channel's steps are long (the row screen's suspects);
+    # from 143 to 303 (16 of its steps) the samples more than 45 from both are far.
+    slow[150:300] = True
+    assert long_gaps(slow, segments, t=[t])[144:303].all()
+    assert np.array_equal(
+        np.flatnonzero(far_from_readings(slow, [t], segments)[:-7]), np.arange(189, 258)
+    )
+
+
+@pytest.mark.parametrize("formulation", ["auto", "strong"])
+def test_a_channel_offline_for_a_long_stretch_costs_those_samples_not_the_model(formulation):
+    # One sensor offline for 30 % of the record (or every sensor at once): its readings
+    # cannot be filled from neighbours hundreds of steps away.  Those samples are left
+    # out (strong form) or under no test function (weak form), as a gap in the record
+    # would be, and counted; the equations are right on every draw.
+    for seed in range(3):
+        data, x, rng = _noisy_lorenz(seed, level=0.01)
+        m = x.shape[0]
+        start, width = int(rng.integers(50, m - 350)), 300
+        channels = [int(rng.integers(0, 3))] if seed < 2 else [0, 1, 2]
+        lost = x.copy()
+        lost[start : start + width, channels] = np.nan
+        model = _fit(lost, data.t, options=dict(formulation=formulation))
+        assert np.array_equal(model.support_, SUPPORT), (seed, model.equations())
+        err = np.abs(model.coef_ - LORENZ.true_coef().T).max()
+        assert err < 0.05 * np.abs(LORENZ.true_coef()).max(), (seed, err)
+        d = model.diagnostics_
+        assert width - 2 * int(GAP_STEPS) <= d.missing_far_samples <= width
+        assert "too far from a reading to fill" in repr(d)
+        if d.formulation == "strong":
+            cut = far_from_readings(np.isnan(lost), [data.t], [slice(0, m)])
+            assert model.screened_[cut].all()
+        else:
+            assert not model.weak_.covered(np.ones(model.weak_.n_rows, bool))[
+                start + int(GAP_STEPS) : start + width - int(GAP_STEPS)
+            ].any()
+
+
+def test_a_channel_read_at_a_tenth_of_the_rate_is_integrated_from_its_own_readings():
+    # A slower sensor: one state read every tenth sample (90 % of its entries NaN, in
+    # runs of nine).  Its runs are not gaps for its own readings, and the weak form's
+    # test functions hold as many of its readings as the quadrature needs.
+    for seed in range(2):
+        data = LORENZ.generate(t_end=20.0, dt=0.005)
+        rng = np.random.default_rng(300 + seed)
+        x = data.x + 0.01 * data.x.std(axis=0) * rng.normal(size=data.x.shape)
+        read = np.zeros(x.shape[0], dtype=bool)
+        read[int(rng.integers(0, 10)) :: 10] = True
+        x[~read, seed] = np.nan
+        model = _fit(x, data.t)
+        assert np.array_equal(model.support_, SUPPORT), (seed, model.equations())
+        d = model.diagnostics_
+        assert d.missing_far_samples == 0 and d.missing_in_gaps == 0
+        if d.formulation == "weak":  # 15 of the slow state's steps at least
+            assert d.support_half_width >= 15 * 10 * 0.005 * (1 - 1e-9)
+
+
+def test_the_support_width_is_read_from_the_readings_not_from_long_fills():
+    # Two slow oscillations, 5 % noise, three sensor outages of 100 samples: the fills
+    # across an outage are no signal.  Their spectra asked for test functions a third of
+    # the width the complete record gives; left out, the width is the complete record's.
+    from robust_sindy.timeseries.missing import Missing
+    from robust_sindy.timeseries.trajectories import Trajectories
+    from robust_sindy.timeseries.weak import support_half_width
+
+    t = 0.02 * np.arange(2000)
+    for seed in range(5):
+        rng = np.random.default_rng(seed)
+        x = np.column_stack([np.sin(t), np.cos(1.3 * t)])
+        x = x + 0.05 * x.std(axis=0) * rng.normal(size=x.shape)
+        lost = x.copy()
+        for _ in range(3):
+            start = int(rng.integers(0, 1900))
+            lost[start : start + 100, int(rng.integers(0, 2))] = np.nan
+        full = support_half_width(Trajectories.from_user(x, t), temporal_screen(x, t))
+        data = Trajectories.from_user(lost, t)
+        screen = temporal_screen(data.x, data.t)
+        found = support_half_width(data, screen, Missing.of(data).suspect)
+        assert found.half_width == pytest.approx(full.half_width, rel=0.1)
+        assert full.noise_limited  # the width is the spectra's, above the floor
 
 
 def test_score_and_save_with_missing_readings(tmp_path):

@@ -582,10 +582,12 @@ def test_samples_left_out_are_reported_by_cause():
     d = HuberSINDy().fit(data.x, data.t, x_dot=data.x_dot).diagnostics_
     m = d.n_samples
 
-    def problems(left_out, unresolved):
+    def problems(left_out, unresolved, far=0.0):
         return dataclasses.replace(
-            d, flagged_fraction=left_out, unresolved_samples=round(unresolved * m)
-        ).problems()
+            d, flagged_fraction=left_out, unresolved_samples=round(unresolved * m),
+            missing_far_samples=round(far * m),
+            model_flagged_samples=round((left_out - unresolved - far) * m),
+        ).problems()  # fmt: skip
 
     assert problems(0.2, 0.1) == [] and problems(0.45, 0.2) == []
     (message,) = problems(0.4, 0.05)
@@ -607,6 +609,11 @@ def test_samples_left_out_are_reported_by_cause():
     assert message.startswith("at 40 % of the samples the estimated derivatives")
     (message,) = problems(0.55, 0.27)
     assert message.startswith("55 % of the samples were left out of the fit (28 % flagged")
+    # Samples too far from a reading to fill are not outliers, and are named.
+    assert problems(0.4, 0.05, far=0.3) == []
+    (message,) = problems(0.6, 0.05, far=0.4)
+    assert message.startswith("60 % of the samples were left out of the fit (15 % flagged")
+    assert "40 % too far from a reading to fill" in message
 
 
 def test_a_state_noise_measured_too_large_does_not_excuse_gross_errors():

@@ -12,7 +12,9 @@ the same contamination (``zoo.contaminate_family``, ``zoo.sample_times``), on
   cycle (a cubic library; on the cycle itself ``x^3 + x y^2 = x`` and the terms alias);
 * ``Lorenz96_20``: twenty channels, where 56 % of the samples hold a glitched entry;
 
-and the glitches at uniformly random times together (``glitches+irregular``), with
+the glitches at uniformly random times together (``glitches+irregular``), and a
+channel offline for a while (``outages``: three stretches of 5 % of the samples, each
+in one channel drawn at random, NaN), with
 exact derivatives and from the states alone, ``HuberSINDy()`` with its defaults
 beside PySINDy's STLSQ (its default threshold, the samples with a missing entry left
 out, the sample times as an array).
@@ -56,9 +58,13 @@ from robust_sindy.flows import (
 )
 
 SYSTEMS = ("DuffingForced", "Hopf", "Lorenz96_20")
-#: The zoo's sensor families, and glitches at uniformly random times (a logger's own
-#: time stamps and a channel's glitches together).
-FAMILIES = (*zoo.SENSOR_FAMILIES, "glitches+irregular")
+#: The zoo's sensor families, glitches at uniformly random times (a logger's own
+#: time stamps and a channel's glitches together), and ``outages``: a channel offline
+#: for a while, three times (:data:`OUTAGES`).
+FAMILIES = (*zoo.SENSOR_FAMILIES, "glitches+irregular", "outages")
+#: ``outages``: this many stretches of this fraction of the samples each, every one in a
+#: channel drawn at random, not measured (NaN).
+OUTAGES, OUTAGE_FRACTION = 3, 0.05
 
 
 class System:
@@ -269,7 +275,14 @@ def make_record(
     params = dataclasses.replace(
         zoo.ZOO_CONTAMINATION, base_noise=noise, glitch_range=tuple(glitches)
     )
-    noisy, _ = zoo.contaminate_family(x, outliers, rng, params)
+    if outliers == "outages":
+        noisy, _ = zoo.contaminate_family(x, "clean", rng, params)
+        length = round(OUTAGE_FRACTION * n_samples)
+        for _ in range(OUTAGES):
+            start = int(rng.integers(0, n_samples - length))
+            noisy[start : start + length, int(rng.integers(0, s.n))] = np.nan
+    else:
+        noisy, _ = zoo.contaminate_family(x, outliers, rng, params)
     return s, t, x, u, dx, noisy
 
 
@@ -414,7 +427,9 @@ def main(argv=None):
         f"{args.samples} samples, Gaussian noise {100 * args.noise:.3g} % of each "
         "state's spread; "
         "families and contamination of `robust_sindy.zoo` (`SENSOR_FAMILIES`), and "
-        "`glitches+irregular`: the glitches at uniformly random times"
+        "`glitches+irregular`: the glitches at uniformly random times; `outages`: "
+        f"{OUTAGES} stretches of {100 * OUTAGE_FRACTION:g} % of the samples, each in one "
+        "channel, not measured"
         + (
             ""
             if glitches == zoo.ZOO_CONTAMINATION.glitch_range

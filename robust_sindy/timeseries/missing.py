@@ -12,7 +12,11 @@ where it is needed, and :class:`Missing` records what was missing for the diagno
   and the weak form's integrals use the filled values.  A filled entry inside a gap
   wider than the screen's half window (the fit then reaches far from it) makes its
   sample (test function) a suspect of the row screen, which keeps it only if the model
-  explains it;
+  explains it.  A sample whose nearest reading of some state (or control) is more than
+  half of :data:`~robust_sindy.timeseries.trajectories.GAP_STEPS` median steps away
+  (in a run of missing readings as long as a gap in the record) is not filled into the
+  fit at all: the strong form leaves it out, and the weak form's test functions do not
+  reach it, as they do not reach across a gap (:func:`far_from_readings`);
 * a missing **control** is filled by the same local fit of its readings, and its sample
   is a suspect of the row screen;
 * a missing **measured derivative** leaves its sample out of the fit (there is no
@@ -26,31 +30,95 @@ from __future__ import annotations
 from dataclasses import dataclass
 
 import numpy as np
-import scipy.ndimage
 
 from .temporal import HALF_WINDOW, fill_missing
-from .trajectories import Trajectories
+from .trajectories import GAP_STEPS, Trajectories
 
-__all__ = ["GAP_HALF_WINDOW", "Missing", "long_gaps"]
+__all__ = ["GAP_HALF_WINDOW", "Missing", "far_from_readings", "long_gaps"]
 
 #: Half window of the temporal screen's local fits: a filled entry in a run of more
-#: missing entries than this is far from its readings.
+#: missing entries than this (of the channel's own steps) is far from its readings.
 GAP_HALF_WINDOW = HALF_WINDOW
 
 
-def long_gaps(lost: np.ndarray, segments, longer_than: int = GAP_HALF_WINDOW) -> np.ndarray:
+def _times_of(t: list | None, segments) -> list:
+    """Each trajectory's sample times, or equally spaced ones where ``t`` is None."""
+    if t is None:
+        return [np.arange(seg.stop - seg.start, dtype=float) for seg in segments]
+    return list(t)
+
+
+def _steps(ts: np.ndarray, lost: np.ndarray) -> tuple[float, np.ndarray]:
+    """The trajectory's median step and, per column of ``lost``, the step of its
+    readings: the median interval between them (a channel read every few samples has its
+    own), at least the trajectory's."""
+    step = float(np.median(np.diff(ts))) if ts.size > 1 else 1.0
+    own = np.full(lost.shape[1], step)
+    for k in np.flatnonzero(lost.any(axis=0)):
+        read = ts[~lost[:, k]]
+        if read.size > 1:
+            own[k] = max(step, float(np.median(np.diff(read))))
+    return step, own
+
+
+def long_gaps(
+    lost: np.ndarray, segments, longer_than: int = GAP_HALF_WINDOW, t: list | None = None
+) -> np.ndarray:
     """The entries of ``lost`` (m, k) in runs (per column, within each trajectory of
-    ``segments``) of more than ``longer_than`` consecutive missing entries."""
+    ``segments``) longer than ``longer_than`` of the column's steps: whose readings on
+    either side are more than ``longer_than + 1`` steps apart in time (a run at a
+    record's end counts one step beyond its last sample).  The step is that of the
+    column's readings (:func:`_steps`); at uniform times with most readings present,
+    runs of more than ``longer_than`` missing entries.  ``t``: the sample times of each
+    trajectory (None: equally spaced)."""
     out = np.zeros_like(lost)
     if not lost.any():
         return out
-    for seg in segments:
-        for k in range(lost.shape[1]):
-            runs, count = scipy.ndimage.label(lost[seg, k])
-            if not count:
+    for seg, ts in zip(segments, _times_of(t, segments), strict=True):
+        part = lost[seg]
+        if not part.any():
+            continue
+        _, own = _steps(ts, part)
+        for k in np.flatnonzero(part.any(axis=0)):
+            edges = np.flatnonzero(np.diff(np.concatenate([[0], part[:, k].view(np.int8), [0]])))
+            first, stop = edges[::2], edges[1::2]  # each run: [first, stop)
+            lo = np.where(first > 0, ts[np.maximum(first - 1, 0)], ts[first] - own[k])
+            hi = np.where(stop < ts.size, ts[np.minimum(stop, ts.size - 1)], ts[stop - 1] + own[k])
+            wide = hi - lo > (longer_than + 1) * own[k] * (1.0 + 1e-9)
+            for a, b in zip(first[wide], stop[wide], strict=True):
+                out[seg.start + a : seg.start + b, k] = True
+    return out
+
+
+def far_from_readings(lost: np.ndarray, t: list | None, segments) -> np.ndarray:
+    """The samples (m,) at which some column of ``lost`` (m, k: missing entries,
+    stacked over the trajectories ``segments`` with sample times ``t``) has no reading
+    within ``GAP_STEPS / 2`` median steps: in an interval between two of its readings as
+    long as a gap in the record, or beyond its last reading by more than half that.  The
+    step is the median interval between the column's readings (a channel read every few
+    samples has its own), or the trajectory's if that is longer.  Measured in time
+    (irregular times alike) and in the record's own steps: unit-free.  Without the times
+    (``t`` None: measured derivatives), the samples are taken as equally spaced."""
+    out = np.zeros(lost.shape[0], dtype=bool)
+    if not lost.any():
+        return out
+    for seg, ts in zip(segments, _times_of(t, segments), strict=True):
+        part = lost[seg]
+        if not part.any() or ts.size < 2:
+            continue
+        _, own = _steps(ts, part)
+        far = np.zeros(ts.size, dtype=bool)
+        for k in np.flatnonzero(part.any(axis=0)):
+            read = ts[~part[:, k]]
+            if read.size == 0:
+                far[:] = True
                 continue
-            sizes = np.bincount(runs)[1:]
-            out[seg, k] = np.isin(runs, 1 + np.flatnonzero(sizes > longer_than))
+            at = np.searchsorted(read, ts)
+            left = read[np.maximum(at - 1, 0)]
+            right = read[np.minimum(at, read.size - 1)]
+            nearest = np.minimum(np.abs(ts - left), np.abs(right - ts))
+            far |= nearest > 0.5 * GAP_STEPS * own[k]
+        out[seg] = far
     return out
 
 
@@ -68,21 +136,26 @@ class Missing:
         Missing entries of the measured derivatives.
     suspect : ndarray of bool (m, n)
         Missing state entries in gaps wider than the screen's half window.
+    far : ndarray of bool (m,)
+        Samples too far from a reading of some state or control to be filled
+        (:func:`far_from_readings`): left out of the fit.
     """
 
     states: np.ndarray
     controls: np.ndarray
     derivatives: np.ndarray
     suspect: np.ndarray
+    far: np.ndarray | None = None
 
     @classmethod
     def of(cls, data: Trajectories) -> Missing:
-        states = data.missing
+        states, controls = data.missing, data.missing_controls
         return cls(
             states,
-            data.missing_controls,
+            controls,
             data.missing_derivatives,
-            long_gaps(states, data.segments),
+            long_gaps(states, data.segments, t=data.t),
+            far_from_readings(np.hstack([states, controls]), data.t, data.segments),
         )
 
     @property
@@ -98,6 +171,19 @@ class Missing:
     def derivative_rows(self) -> np.ndarray:
         """Samples (m,) with a missing measured derivative (left out of the fit)."""
         return self.derivatives.any(axis=1)
+
+    @property
+    def far_rows(self) -> np.ndarray:
+        """Samples (m,) too far from a reading to be filled (left out of the fit)."""
+        if self.far is None:
+            return np.zeros(self.states.shape[0], dtype=bool)
+        return self.far
+
+    @property
+    def absent_rows(self) -> np.ndarray:
+        """Samples (m,) the strong form leaves out: a missing measured derivative, or a
+        reading too far to fill."""
+        return self.derivative_rows | self.far_rows
 
     def filled_inputs(self, data: Trajectories, temporal) -> np.ndarray:
         """The library's inputs (states, then controls) with the missing states taken
@@ -116,6 +202,7 @@ class Missing:
         return dict(
             missing_states=self.states.sum(axis=0).astype(int),
             missing_in_gaps=int(self.suspect.sum()),
+            missing_far_samples=int(self.far_rows.sum()),
             missing_controls=int(self.controls.sum()),
             missing_derivative_samples=int(self.derivative_rows.sum()),
         )

@@ -72,16 +72,32 @@ def slices(lengths) -> list[slice]:
 GAP_STEPS = 9.0
 
 
-def gapless_pieces(t: np.ndarray) -> list[slice]:
+def gapless_pieces(t: np.ndarray, cut: np.ndarray | None = None) -> list[slice]:
     """The samples of one record between its gaps (intervals longer than
-    :data:`GAP_STEPS` median steps), as slices in time order."""
+    :data:`GAP_STEPS` median steps), as slices in time order; without the samples
+    ``cut`` (a mask of the record's samples, e.g. those whose missing readings lie too
+    far from any reading to be filled, :func:`~robust_sindy.timeseries.missing.far_from_readings`),
+    which lie in no piece and split the piece they are in."""
     t = np.asarray(t, dtype=float)
     if t.size < 3:
-        return [slice(0, t.size)]
-    steps = np.diff(t)
-    cut = np.flatnonzero(steps > GAP_STEPS * np.median(steps)) + 1
-    edges = [0, *cut.tolist(), t.size]
-    return [slice(a, b) for a, b in itertools.pairwise(edges)]
+        pieces = [slice(0, t.size)]
+    else:
+        steps = np.diff(t)
+        breaks = np.flatnonzero(steps > GAP_STEPS * np.median(steps)) + 1
+        edges = [0, *breaks.tolist(), t.size]
+        pieces = [slice(a, b) for a, b in itertools.pairwise(edges)]
+    if cut is None or not np.any(cut):
+        return pieces
+    out = []
+    for piece in pieces:
+        inside = ~np.asarray(cut[piece], dtype=bool)
+        # Runs of samples not cut: where ``inside`` turns on and off.
+        change = np.flatnonzero(np.diff(np.concatenate([[False], inside, [False]])))
+        out.extend(
+            slice(piece.start + int(a), piece.start + int(b))
+            for a, b in zip(change[::2], change[1::2], strict=True)
+        )
+    return out
 
 
 def segments_of(keep: np.ndarray, segments: list[slice]) -> list[slice]:

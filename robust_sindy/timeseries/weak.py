@@ -145,14 +145,19 @@ def _local_fits(t: np.ndarray, piece: slice, samples: int = LOCAL_SAMPLES):
 
 
 def weight_functions(
-    t: np.ndarray, h: float, spacing: float = SPACING, samples: int = LOCAL_SAMPLES
+    t: np.ndarray,
+    h: float,
+    spacing: float = SPACING,
+    samples: int = LOCAL_SAMPLES,
+    cut: np.ndarray | None = None,
 ):
     """``(phi, dphi, centres)``: the quadrature weights (arrays K x m) of the integrals
     of the test functions and of their time derivatives against values sampled at ``t``,
     and the centres (K,), every ``spacing * h`` from ``t[0] + h`` to ``t[-1] - h``
     (K = 0 when the record is shorter than ``2 h``); in a record with gaps
     (:func:`~robust_sindy.timeseries.trajectories.gapless_pieces`), in each piece
-    between them.
+    between them.  Samples ``cut`` (a mask) lie under no test function: they split the
+    record as a gap does.
 
     Product integration: the sampled values are taken as the local least-squares
     polynomial around each interval (``samples`` samples, by default
@@ -163,7 +168,7 @@ def weight_functions(
     """
     m = t.size
     rows = []  # (centre, the piece's local fits)
-    for piece in gapless_pieces(t):  # no support reaches across a gap in the record
+    for piece in gapless_pieces(t, cut):  # no support reaches across a gap in the record
         lo, hi = t[piece][0] + h, t[piece][-1] - h
         if hi >= lo and piece.stop - piece.start >= 2:
             count = int(np.floor((hi - lo) / (spacing * h) + 1e-9)) + 1
@@ -191,15 +196,29 @@ def weight_functions(
     return phi, dphi, centres
 
 
-def _corner(x: np.ndarray, t: np.ndarray, sigma: float) -> float | None:
+def _corner(x: np.ndarray, t: np.ndarray, sigma: float, skip=None) -> float | None:
     """The highest frequency at which the spectrum of ``x`` (Welch's estimate on a
     uniform grid of the median step) exceeds ``NOISE_FLOOR_FACTOR`` times the floor of
     white noise of scale ``sigma``; None where it never does (no signal above the
-    noise: nothing for the test functions to resolve)."""
+    noise: nothing for the test functions to resolve).  ``skip`` (a mask of the
+    samples): values that are no readings (fills far from any); Welch's segments over
+    them are left out of the average (all are kept where every segment holds one)."""
     dt = float(np.median(np.diff(t)))
     grid = t[0] + dt * np.arange(round((t[-1] - t[0]) / dt) + 1)
     values = np.interp(grid, t, x)
-    f, pxx = scipy.signal.welch(values - values.mean(), fs=1.0 / dt, nperseg=min(256, grid.size))
+    nperseg = min(256, grid.size)
+    if skip is None or not np.any(skip):
+        f, pxx = scipy.signal.welch(values - values.mean(), fs=1.0 / dt, nperseg=nperseg)
+    else:
+        f, _, sxx = scipy.signal.spectrogram(
+            values - values.mean(), fs=1.0 / dt, window="hann", nperseg=nperseg,
+            noverlap=nperseg // 2, detrend="constant", scaling="density", mode="psd",
+        )  # fmt: skip
+        bad = np.interp(grid, t, np.asarray(skip, dtype=float)) > 0
+        hop = nperseg - nperseg // 2
+        starts = hop * np.arange(sxx.shape[1])
+        clean = np.array([not bad[a : a + nperseg].any() for a in starts])
+        pxx = sxx[:, clean].mean(axis=1) if clean.any() else sxx.mean(axis=1)
     floor = 2.0 * sigma**2 * dt
     above = np.flatnonzero(pxx[1:] > NOISE_FLOOR_FACTOR * floor) + 1
     return float(f[above.max()]) if above.size else None
@@ -225,26 +244,40 @@ class Support:
     samples: float
 
 
-def support_half_width(data: Trajectories, temporal: TemporalScreening) -> Support:
+def support_half_width(
+    data: Trajectories, temporal: TemporalScreening, skip: np.ndarray | None = None
+) -> Support:
     """The test functions' half width (time units; see the module docstring), at least
-    ``MIN_SUPPORT_SAMPLES`` median steps of every trajectory."""
+    ``MIN_SUPPORT_SAMPLES`` median steps of every trajectory, and of the readings of
+    every state (a state read every few samples: its median interval between readings).
+    Each state's spectrum leaves out the stretches ``skip`` (m, n) of that state: its
+    fills in runs of missing readings too long to be signal."""
     states = [temporal.repaired[seg] for seg in data.segments]
+    skips = None if skip is None else [skip[seg] for seg in data.segments]
     widths = []  # per state with a signal above its noise, the half width it asks for
-    steps = []
-    for x, t in zip(states, data.t, strict=True):
+    steps, reading_steps = [], []
+    for i, (x, t, raw) in enumerate(zip(states, data.t, data.x, strict=True)):
         if x.shape[0] < 8:
             continue
         steps.append(float(np.median(np.diff(t))))
+        # A state read every few samples (a slower sensor) is integrated from its own
+        # readings: the quadrature needs as many of them under a test function.
+        reading = steps[-1]
+        for k in np.flatnonzero(np.isnan(raw).any(axis=0)):
+            read = t[~np.isnan(raw[:, k])]
+            if read.size > 1:
+                reading = max(reading, float(np.median(np.diff(read))))
+        reading_steps.append(reading)
         for k in range(x.shape[1]):
             sigma = float(temporal.scale[k])
             if not np.isfinite(sigma) or sigma <= 0 or np.ptp(x[:, k]) == 0:
                 continue
-            corner = _corner(x[:, k], t, sigma)
+            corner = _corner(x[:, k], t, sigma, None if skips is None else skips[i][:, k])
             if corner is not None:
                 widths.append(HALF_AMPLITUDE / (2.0 * np.pi * corner))
     if not steps:
         raise ValueError("the weak form needs trajectories of at least 8 samples")
-    least = MIN_SUPPORT_SAMPLES * max(steps)
+    least = MIN_SUPPORT_SAMPLES * max(reading_steps)
     h = min(widths, default=0.0)
     width = max(h, least)
     return Support(width, h > least, width / max(steps))
@@ -365,7 +398,7 @@ class WeakRows:
         return noise_columns.map_rows(rows_of)
 
 
-def choose_stencil(ts, states, scale, h: float, spacing: float = SPACING):
+def choose_stencil(ts, states, scale, h: float, spacing: float = SPACING, cuts=None):
     """The product integration's stencil for the records ``ts`` (sample times per
     trajectory) and ``states`` (their values, one (m_i, n) array per trajectory), whose
     noise levels are ``scale`` (n,), and the weights of the chosen one (a list of
@@ -382,11 +415,15 @@ def choose_stencil(ts, states, scale, h: float, spacing: float = SPACING):
     own: along the trajectory the true terms sum to the derivatives, whose integrals
     against ``phi`` carry the same band as the targets'.  Both sides scale as the
     squares of the states and do not depend on the units of time: unit-free.
+    ``cuts``: per trajectory, the samples under no test function (or None).
     """
     scale = np.asarray(scale, dtype=float)
     n = scale.size
-    narrow = [weight_functions(t, h, spacing) for t in ts]
-    wide = [weight_functions(t, h, spacing, WIDE_SAMPLES) for t in ts]
+    cuts = [None] * len(ts) if cuts is None else cuts
+    narrow = [weight_functions(t, h, spacing, cut=c) for t, c in zip(ts, cuts, strict=True)]
+    wide = [
+        weight_functions(t, h, spacing, WIDE_SAMPLES, cut=c) for t, c in zip(ts, cuts, strict=True)
+    ]
     added, noise, variance, removed = np.zeros(n), 0.0, 0.0, 0.0
     for x, (_, dn, _), (_, dw, _) in zip(states, narrow, wide, strict=True):
         diff = scipy.sparse.csr_array(dn - dw)
@@ -412,23 +449,29 @@ def weak_rows(
     h: float,
     min_rows: int = 0,
     noise=None,
+    cut: np.ndarray | None = None,
 ) -> WeakRows:
     """The weak form of every trajectory: ``states`` (m, n) and the library matrix
     ``theta`` (m, p) of all samples (stacked as in ``data``) integrated against test
     functions of half width ``h``, their centres ``SPACING * h`` apart, or closer (down to
     ``MIN_SPACING * h``) where that gives fewer than ``min_rows`` rows in all.  With the
     states' noise levels ``noise`` (n,), the quadrature's stencil is chosen from them
-    (:func:`choose_stencil`); without, it is ``LOCAL_SAMPLES``."""
+    (:func:`choose_stencil`); without, it is ``LOCAL_SAMPLES``.  ``cut`` (m,): samples
+    under no test function (readings too far to fill,
+    :func:`~robust_sindy.timeseries.missing.far_from_readings`)."""
+    cuts = [None if cut is None else cut[seg] for seg in data.segments]
     room = sum(max(t[-1] - t[0] - 2 * h, 0.0) for t in data.t)
     spacing = SPACING
     if min_rows > 0 and room > 0:
         spacing = float(np.clip(room / (h * min_rows), MIN_SPACING, SPACING))
     if noise is None:
         stencil = Stencil(LOCAL_SAMPLES, float("nan"))
-        weights_of = [weight_functions(t, h, spacing)[:2] for t in data.t]
+        weights_of = [
+            weight_functions(t, h, spacing, cut=c)[:2] for t, c in zip(data.t, cuts, strict=True)
+        ]
     else:
         stencil, weights_of = choose_stencil(
-            data.t, [states[seg] for seg in data.segments], noise, h, spacing
+            data.t, [states[seg] for seg in data.segments], noise, h, spacing, cuts
         )
     Gs, bs, supports, weights, slopes, counts = [], [], [], [], [], []
     for seg, (phi, dphi) in zip(data.segments, weights_of, strict=True):
