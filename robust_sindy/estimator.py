@@ -545,11 +545,10 @@ class HuberSINDy(BaseEstimator):
             )
             design, segments = weak.G, weak.segments
             row_flags = weak.touched(flags | missing.controls_suspect, data)[:, None]
-        far = missing.far_rows if weak is None else None
-        if far is not None and far.any():
+        if weak is None and missing.far.any():
             # Samples too far from a reading to fill are left out (below): not of the
             # columns' scales either.
-            scaler = Standardizer.from_data(clean[~far], deriv.y[~far])
+            scaler = Standardizer.from_data(clean[~missing.far], deriv.y[~missing.far])
         else:
             scaler = Standardizer.from_data(design if weak is not None else clean, deriv.y)
         del clean  # a copy of the library, not needed further
@@ -765,7 +764,7 @@ class HuberSINDy(BaseEstimator):
         terms = library.n_output_features_
         rows = weak_rows(
             data, states, library.transform(inputs), support.half_width,
-            min_rows=2 * MIN_ROWS_PER_TERM * terms, noise=screen.scale, cut=missing.far_rows,
+            min_rows=2 * MIN_ROWS_PER_TERM * terms, noise=screen.scale, cut=missing.far,
         )  # fmt: skip
         if rows.n_rows <= MIN_ROWS_PER_TERM * terms:
             if self.formulation == "weak":

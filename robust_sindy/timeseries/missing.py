@@ -32,7 +32,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from .temporal import HALF_WINDOW, fill_missing
-from .trajectories import GAP_STEPS, Trajectories
+from .trajectories import GAP_STEPS, Trajectories, reading_steps, runs
 
 __all__ = ["GAP_HALF_WINDOW", "Missing", "far_from_readings", "long_gaps"]
 
@@ -48,19 +48,6 @@ def _times_of(t: list | None, segments) -> list:
     return list(t)
 
 
-def _steps(ts: np.ndarray, lost: np.ndarray) -> tuple[float, np.ndarray]:
-    """The trajectory's median step and, per column of ``lost``, the step of its
-    readings: the median interval between them (a channel read every few samples has its
-    own), at least the trajectory's."""
-    step = float(np.median(np.diff(ts))) if ts.size > 1 else 1.0
-    own = np.full(lost.shape[1], step)
-    for k in np.flatnonzero(lost.any(axis=0)):
-        read = ts[~lost[:, k]]
-        if read.size > 1:
-            own[k] = max(step, float(np.median(np.diff(read))))
-    return step, own
-
-
 def long_gaps(
     lost: np.ndarray, segments, longer_than: int = GAP_HALF_WINDOW, t: list | None = None
 ) -> np.ndarray:
@@ -68,7 +55,8 @@ def long_gaps(
     ``segments``) longer than ``longer_than`` of the column's steps: whose readings on
     either side are more than ``longer_than + 1`` steps apart in time (a run at a
     record's end counts one step beyond its last sample).  The step is that of the
-    column's readings (:func:`_steps`); at uniform times with most readings present,
+    column's readings (:func:`~robust_sindy.timeseries.trajectories.reading_steps`); at
+    uniform times with most readings present,
     runs of more than ``longer_than`` missing entries.  ``t``: the sample times of each
     trajectory (None: equally spaced)."""
     out = np.zeros_like(lost)
@@ -78,10 +66,9 @@ def long_gaps(
         part = lost[seg]
         if not part.any():
             continue
-        _, own = _steps(ts, part)
+        own = reading_steps(ts, part)
         for k in np.flatnonzero(part.any(axis=0)):
-            edges = np.flatnonzero(np.diff(np.concatenate([[0], part[:, k].view(np.int8), [0]])))
-            first, stop = edges[::2], edges[1::2]  # each run: [first, stop)
+            first, stop = runs(part[:, k])
             lo = np.where(first > 0, ts[np.maximum(first - 1, 0)], ts[first] - own[k])
             hi = np.where(stop < ts.size, ts[np.minimum(stop, ts.size - 1)], ts[stop - 1] + own[k])
             wide = hi - lo > (longer_than + 1) * own[k] * (1.0 + 1e-9)
@@ -106,7 +93,7 @@ def far_from_readings(lost: np.ndarray, t: list | None, segments) -> np.ndarray:
         part = lost[seg]
         if not part.any() or ts.size < 2:
             continue
-        _, own = _steps(ts, part)
+        own = reading_steps(ts, part)
         far = np.zeros(ts.size, dtype=bool)
         for k in np.flatnonzero(part.any(axis=0)):
             read = ts[~part[:, k]]
@@ -145,7 +132,7 @@ class Missing:
     controls: np.ndarray
     derivatives: np.ndarray
     suspect: np.ndarray
-    far: np.ndarray | None = None
+    far: np.ndarray
 
     @classmethod
     def of(cls, data: Trajectories) -> Missing:
@@ -173,17 +160,10 @@ class Missing:
         return self.derivatives.any(axis=1)
 
     @property
-    def far_rows(self) -> np.ndarray:
-        """Samples (m,) too far from a reading to be filled (left out of the fit)."""
-        if self.far is None:
-            return np.zeros(self.states.shape[0], dtype=bool)
-        return self.far
-
-    @property
     def absent_rows(self) -> np.ndarray:
         """Samples (m,) the strong form leaves out: a missing measured derivative, or a
         reading too far to fill."""
-        return self.derivative_rows | self.far_rows
+        return self.derivative_rows | self.far
 
     def filled_inputs(self, data: Trajectories, temporal) -> np.ndarray:
         """The library's inputs (states, then controls) with the missing states taken
@@ -202,7 +182,7 @@ class Missing:
         return dict(
             missing_states=self.states.sum(axis=0).astype(int),
             missing_in_gaps=int(self.suspect.sum()),
-            missing_far_samples=int(self.far_rows.sum()),
+            missing_far_samples=int(self.far.sum()),
             missing_controls=int(self.controls.sum()),
             missing_derivative_samples=int(self.derivative_rows.sum()),
         )

@@ -28,6 +28,8 @@ __all__ = [
     "is_dask",
     "is_frame",
     "is_series",
+    "reading_steps",
+    "runs",
     "segments_of",
     "slices",
 ]
@@ -72,6 +74,26 @@ def slices(lengths) -> list[slice]:
 GAP_STEPS = 9.0
 
 
+def runs(mask: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The runs of True in the 1-D ``mask``: their first indices and the indices just
+    past them (``mask[first:stop]`` is each run)."""
+    edges = np.flatnonzero(np.diff(np.concatenate([[0], np.asarray(mask, dtype=np.int8), [0]])))
+    return edges[::2], edges[1::2]
+
+
+def reading_steps(t: np.ndarray, lost: np.ndarray) -> np.ndarray:
+    """Per column of ``lost`` (m, k: missing entries of one record sampled at ``t``), the
+    step of its readings: the median interval between them (a channel read every few
+    samples has its own), at least the record's median step."""
+    step = float(np.median(np.diff(t))) if t.size > 1 else 1.0
+    own = np.full(lost.shape[1], step)
+    for k in np.flatnonzero(lost.any(axis=0)):
+        read = t[~lost[:, k]]
+        if read.size > 1:
+            own[k] = max(step, float(np.median(np.diff(read))))
+    return own
+
+
 def gapless_pieces(t: np.ndarray, cut: np.ndarray | None = None) -> list[slice]:
     """The samples of one record between its gaps (intervals longer than
     :data:`GAP_STEPS` median steps), as slices in time order; without the samples
@@ -90,12 +112,10 @@ def gapless_pieces(t: np.ndarray, cut: np.ndarray | None = None) -> list[slice]:
         return pieces
     out = []
     for piece in pieces:
-        inside = ~np.asarray(cut[piece], dtype=bool)
-        # Runs of samples not cut: where ``inside`` turns on and off.
-        change = np.flatnonzero(np.diff(np.concatenate([[False], inside, [False]])))
+        first, stop = runs(~np.asarray(cut[piece], dtype=bool))  # the samples not cut
         out.extend(
             slice(piece.start + int(a), piece.start + int(b))
-            for a, b in zip(change[::2], change[1::2], strict=True)
+            for a, b in zip(first, stop, strict=True)
         )
     return out
 

@@ -45,7 +45,7 @@ import scipy.signal
 import scipy.sparse
 
 from .temporal import TemporalScreening
-from .trajectories import Trajectories, gapless_pieces, slices
+from .trajectories import Trajectories, gapless_pieces, reading_steps, slices
 
 __all__ = [
     "HALF_AMPLITUDE",
@@ -255,19 +255,14 @@ def support_half_width(
     states = [temporal.repaired[seg] for seg in data.segments]
     skips = None if skip is None else [skip[seg] for seg in data.segments]
     widths = []  # per state with a signal above its noise, the half width it asks for
-    steps, reading_steps = [], []
+    steps, slowest = [], []
     for i, (x, t, raw) in enumerate(zip(states, data.t, data.x, strict=True)):
         if x.shape[0] < 8:
             continue
         steps.append(float(np.median(np.diff(t))))
         # A state read every few samples (a slower sensor) is integrated from its own
         # readings: the quadrature needs as many of them under a test function.
-        reading = steps[-1]
-        for k in np.flatnonzero(np.isnan(raw).any(axis=0)):
-            read = t[~np.isnan(raw[:, k])]
-            if read.size > 1:
-                reading = max(reading, float(np.median(np.diff(read))))
-        reading_steps.append(reading)
+        slowest.append(float(reading_steps(t, np.isnan(raw)).max(initial=steps[-1])))
         for k in range(x.shape[1]):
             sigma = float(temporal.scale[k])
             if not np.isfinite(sigma) or sigma <= 0 or np.ptp(x[:, k]) == 0:
@@ -277,7 +272,7 @@ def support_half_width(
                 widths.append(HALF_AMPLITUDE / (2.0 * np.pi * corner))
     if not steps:
         raise ValueError("the weak form needs trajectories of at least 8 samples")
-    least = MIN_SUPPORT_SAMPLES * max(reading_steps)
+    least = MIN_SUPPORT_SAMPLES * max(slowest)
     h = min(widths, default=0.0)
     width = max(h, least)
     return Support(width, h > least, width / max(steps))
